@@ -1,0 +1,30 @@
+"""``visfly-dist bench``: one sub-command per benchmark, each in its own module.
+
+Each module exposes ``add_arguments(parser)`` and ``run(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+BENCHMARKS: dict[str, tuple[str, str]] = {
+    "physics": ("visfly_dist.bench.physics", "batched dynamics: agent-steps/s, eager and compiled"),
+    "render": ("visfly_dist.bench.render", "renderers and obstacle queries: frames/s in-process and via a worker"),
+    "step": ("visfly_dist.bench.step", "full VecEnv.step env-steps/s with a per-stage breakdown"),
+    "all": ("visfly_dist.bench.suite", "everything, with the pybullet peer, plots and BENCHMARKS.md"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="bench", metavar="BENCHMARK", required=True)
+    for name, (module_name, help_text) in BENCHMARKS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            continue
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(p)
+        p.set_defaults(func=module.run)

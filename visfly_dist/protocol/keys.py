@@ -1,0 +1,40 @@
+"""Key expressions of the wire: the one place that builds them.
+
+Everything of a run lives under ``visfly/<run_id>/`` so two runs on one network never meet.
+"""
+
+from __future__ import annotations
+
+import re
+
+from visfly_dist.errors import ConfigError
+
+ROOT = "visfly"
+_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def check_chunk(value: str, what: str) -> str:
+    """Return ``value`` if it is a safe single key-expression chunk, else raise ConfigError."""
+    if not isinstance(value, str) or not _CHUNK.match(value):
+        raise ConfigError(f"{what}={value!r} must be a non-empty string of letters, digits, '_', '.', '-'")
+    return value
+
+
+def worker_rpc(run_id: str, worker_id: str) -> str:
+    """The queryable a worker serves all its requests on."""
+    return f"{ROOT}/{check_chunk(run_id, 'run_id')}/worker/{check_chunk(worker_id, 'worker_id')}/rpc"
+
+
+def worker_alive(run_id: str, worker_id: str) -> str:
+    """The liveliness token a worker holds while it is alive and serving."""
+    return f"{ROOT}/{check_chunk(run_id, 'run_id')}/alive/worker/{check_chunk(worker_id, 'worker_id')}"
+
+
+def workers_alive_pattern(run_id: str) -> str:
+    """Pattern matching the liveliness tokens of every worker of one run."""
+    return f"{ROOT}/{check_chunk(run_id, 'run_id')}/alive/worker/*"
+
+
+def worker_id_from_alive_key(key: str) -> str:
+    """The worker id at the end of a liveliness key."""
+    return str(key).rsplit("/", 1)[-1]

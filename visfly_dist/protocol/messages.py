@@ -1,0 +1,236 @@
+"""Message types of the worker protocol, with their validation.
+
+The aggregator builds requests with the ``*.to_message()`` methods; the worker turns a decoded map
+into a typed request with :func:`parse_request`, which raises :class:`ProtocolError` naming what
+is wrong. Replies are plain maps built by the worker (see each request's docstring).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from visfly_dist.errors import ConfigError, ProtocolError
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.keys import check_chunk
+
+MAX_AGENTS_PER_REQUEST = 100_000
+MAX_CAMERAS = 16
+MAX_SCENES_PER_REQUEST = 1024
+MAX_SOURCE_CHARS = 4096
+
+
+@dataclass(frozen=True)
+class LoadScene:
+    """Load (or replace) a scene under ``scene_key``.
+
+    ``source`` is a path relative to one of the worker's scene roots (a scene directory, a mesh
+    file or a Habitat ``*.scene_instance.json``) or a generator spec ``gen:KIND?seed=S&key=value``.
+    Reply ``{"type": "scene_loaded", "scene_key", "bounds": (2, 3) f64, "num_triangles",
+    "num_objects", "backend", "metadata": {...}}``.
+    """
+
+    scene_key: str
+    source: str
+    cameras: tuple[CameraSpec, ...]
+    drone_radius: float = 0.1
+    multi_agent: bool = False
+    type: str = field(default="load_scene", init=False)
+
+    def to_message(self) -> dict[str, Any]:
+        return {"type": self.type, "scene_key": self.scene_key, "source": self.source,
+                "cameras": [c.to_dict() for c in self.cameras], "drone_radius": float(self.drone_radius),
+                "multi_agent": bool(self.multi_agent)}
+
+
+@dataclass(frozen=True)
+class UnloadScene:
+    """Forget a scene. Reply ``{"type": "ok"}``."""
+
+    scene_key: str
+    type: str = field(default="unload_scene", init=False)
+
+    def to_message(self) -> dict[str, Any]:
+        return {"type": self.type, "scene_key": self.scene_key}
+
+
+@dataclass(frozen=True)
+class ScenePoses:
+    """Poses of the agents in one scene: ``(n, 7)`` rows ``[x, y, z, qw, qx, qy, qz]`` (world)."""
+
+    scene_key: str
+    poses: np.ndarray
+
+    def to_message(self) -> dict[str, Any]:
+        return {"scene_key": self.scene_key, "poses": np.ascontiguousarray(self.poses, dtype=np.float32)}
+
+
+@dataclass(frozen=True)
+class StepRequest:
+    """Render every camera of every agent and query obstacles, for several scenes at once.
+
+    Reply ``{"type": "step_result", "scenes": [{"scene_key", "images": {camera_name: (n, C, H, W)},
+    "collision": (n,) bool, "inside": (n,) bool, "nearest": (n, 3) f32 world point,
+    "distance": (n,) f32 (capped at search_radius)}], "timings": {stage: seconds}}``.
+    """
+
+    scenes: tuple[ScenePoses, ...]
+    render: bool = True
+    query: bool = True
+    search_radius: float = 5.0
+    type: str = field(default="step", init=False)
+
+    def to_message(self) -> dict[str, Any]:
+        return {"type": self.type, "scenes": [s.to_message() for s in self.scenes], "render": bool(self.render),
+                "query": bool(self.query), "search_radius": float(self.search_radius)}
+
+
+@dataclass(frozen=True)
+class SampleSpawn:
+    """Sample ``n`` positions in free space at ``clearance`` from any obstacle.
+
+    ``distribution`` is ``"uniform"`` (``a`` = low, ``b`` = high corner) or ``"normal"``
+    (``a`` = mean, ``b`` = std). Reply ``{"type": "spawn", "positions": (n, 3) f32}``.
+    """
+
+    scene_key: str
+    n: int
+    clearance: float
+    distribution: str
+    a: tuple[float, float, float]
+    b: tuple[float, float, float]
+    seed: int = 0
+    type: str = field(default="sample_spawn", init=False)
+
+    def to_message(self) -> dict[str, Any]:
+        return {"type": self.type, "scene_key": self.scene_key, "n": int(self.n), "clearance": float(self.clearance),
+                "distribution": self.distribution, "a": [float(v) for v in self.a], "b": [float(v) for v in self.b],
+                "seed": int(self.seed)}
+
+
+@dataclass(frozen=True)
+class Health:
+    """Ask for the worker's state. Reply ``{"type": "health", "worker_id", "pid", "host", "backend",
+    "scenes": [keys], "uptime_s", "timings": {stage: {"count": int, "total_s": float}}}``."""
+
+    type: str = field(default="health", init=False)
+
+    def to_message(self) -> dict[str, Any]:
+        return {"type": self.type}
+
+
+REQUEST_TYPES = ("load_scene", "unload_scene", "step", "sample_spawn", "health")
+Request = LoadScene | UnloadScene | StepRequest | SampleSpawn | Health
+
+
+def _get(msg: Mapping[str, Any], key: str, kind: type | tuple[type, ...], what: str) -> Any:
+    if key not in msg:
+        raise ProtocolError(f"{what}: missing field {key!r}")
+    value = msg[key]
+    if isinstance(value, bool) and kind in (int, float, (int, float)):
+        raise ProtocolError(f"{what}: field {key!r} must be a number, got bool")
+    if not isinstance(value, kind):
+        raise ProtocolError(f"{what}: field {key!r} must be {getattr(kind, '__name__', kind)}, got {type(value).__name__}")
+    return value
+
+
+def _finite(value: Any, what: str, lo: float, hi: float) -> float:
+    v = float(value)
+    if not math.isfinite(v) or not lo <= v <= hi:
+        raise ProtocolError(f"{what}={value!r} must be finite and in [{lo}, {hi}]")
+    return v
+
+
+def _key(msg: Mapping[str, Any], what: str) -> str:
+    try:
+        return check_chunk(_get(msg, "scene_key", str, what), "scene_key")
+    except ConfigError as exc:
+        raise ProtocolError(f"{what}: {exc}") from None
+
+
+def _vec3(value: Any, what: str) -> tuple[float, float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise ProtocolError(f"{what} must be a list of 3 numbers, got {value!r}")
+    return tuple(_finite(v, what, -1e6, 1e6) for v in value)  # type: ignore[return-value]
+
+
+def _poses(value: Any, what: str) -> np.ndarray:
+    if not isinstance(value, np.ndarray):
+        raise ProtocolError(f"{what}: poses must be an array, got {type(value).__name__}")
+    if value.dtype not in (np.float32, np.float64):
+        raise ProtocolError(f"{what}: poses dtype {value.dtype} must be float32 or float64")
+    if value.ndim != 2 or value.shape[1] != 7:
+        raise ProtocolError(f"{what}: poses shape {value.shape} must be (n, 7): x y z qw qx qy qz")
+    if value.shape[0] > MAX_AGENTS_PER_REQUEST:
+        raise ProtocolError(f"{what}: {value.shape[0]} poses exceed the bound {MAX_AGENTS_PER_REQUEST}")
+    if not np.all(np.isfinite(value)):
+        raise ProtocolError(f"{what}: poses contain NaN or infinite values")
+    if np.any(np.abs(value[:, :3]) > 1e6):
+        raise ProtocolError(f"{what}: positions beyond 1e6 m")
+    norms = np.linalg.norm(value[:, 3:], axis=1)
+    if np.any(np.abs(norms - 1.0) > 1e-2):
+        raise ProtocolError(f"{what}: quaternions must be unit (norms range {norms.min():.3g}..{norms.max():.3g})")
+    return value.astype(np.float64)
+
+
+def parse_request(msg: Mapping[str, Any]) -> Request:
+    """Validate a decoded message and return the typed request; ProtocolError otherwise."""
+    kind = msg.get("type")
+    if kind not in REQUEST_TYPES:
+        raise ProtocolError(f"unknown message type {kind!r}; valid types: {', '.join(REQUEST_TYPES)}")
+    what = str(kind)
+    if kind == "health":
+        return Health()
+    if kind == "unload_scene":
+        return UnloadScene(_key(msg, what))
+    if kind == "load_scene":
+        source = _get(msg, "source", str, what)
+        if not source or len(source) > MAX_SOURCE_CHARS or "\x00" in source:
+            raise ProtocolError(f"{what}: source must be a non-empty string under {MAX_SOURCE_CHARS} chars")
+        cams = _get(msg, "cameras", list, what)
+        if len(cams) > MAX_CAMERAS:
+            raise ProtocolError(f"{what}: {len(cams)} cameras exceed the bound {MAX_CAMERAS}")
+        try:
+            cameras = tuple(CameraSpec.from_dict(c) for c in cams)
+        except ConfigError as exc:
+            raise ProtocolError(f"{what}: {exc}") from None
+        names = [c.name for c in cameras]
+        if len(set(names)) != len(names):
+            raise ProtocolError(f"{what}: camera names {names} must be unique")
+        radius = _finite(_get(msg, "drone_radius", (int, float), what), "drone_radius", 0.0, 10.0)
+        multi = _get(msg, "multi_agent", bool, what)
+        return LoadScene(_key(msg, what), source, cameras, radius, multi)
+    if kind == "sample_spawn":
+        n = _get(msg, "n", int, what)
+        if not 1 <= n <= MAX_AGENTS_PER_REQUEST:
+            raise ProtocolError(f"{what}: n={n} must be in [1, {MAX_AGENTS_PER_REQUEST}]")
+        dist = _get(msg, "distribution", str, what)
+        if dist not in ("uniform", "normal"):
+            raise ProtocolError(f"{what}: distribution={dist!r} must be 'uniform' or 'normal'")
+        a, b = _vec3(msg.get("a"), "a"), _vec3(msg.get("b"), "b")
+        if dist == "uniform" and any(lo > hi for lo, hi in zip(a, b)):
+            raise ProtocolError(f"{what}: uniform low {a} must not exceed high {b}")
+        if dist == "normal" and any(s < 0 for s in b):
+            raise ProtocolError(f"{what}: normal std {b} must be non-negative")
+        seed = _get(msg, "seed", int, what)
+        clearance = _finite(_get(msg, "clearance", (int, float), what), "clearance", 0.0, 100.0)
+        return SampleSpawn(_key(msg, what), n, clearance, dist, a, b, seed)
+    # step
+    scenes = _get(msg, "scenes", list, what)
+    if len(scenes) > MAX_SCENES_PER_REQUEST:
+        raise ProtocolError(f"{what}: {len(scenes)} scenes exceed the bound {MAX_SCENES_PER_REQUEST}")
+    parsed = []
+    total = 0
+    for i, s in enumerate(scenes):
+        if not isinstance(s, dict):
+            raise ProtocolError(f"{what}: scenes[{i}] must be a map")
+        poses = _poses(s.get("poses"), f"{what}.scenes[{i}]")
+        total += poses.shape[0]
+        parsed.append(ScenePoses(_key(s, f"{what}.scenes[{i}]"), poses))
+    if total > MAX_AGENTS_PER_REQUEST:
+        raise ProtocolError(f"{what}: {total} poses in all exceed the bound {MAX_AGENTS_PER_REQUEST}")
+    radius = _finite(_get(msg, "search_radius", (int, float), what), "search_radius", 0.0, 1e4)
+    return StepRequest(tuple(parsed), bool(msg.get("render", True)), bool(msg.get("query", True)), radius)
