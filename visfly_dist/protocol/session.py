@@ -9,6 +9,7 @@ default and only helps between processes on one host.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -29,6 +30,8 @@ class SessionConfig:
         shared_memory: use Zenoh shared memory for large payloads (same-host only).
         lease_ms: link lease; a hung process is declared dead after about this long.
         extra: further ``key -> JSON value`` settings (TLS, auth), inserted verbatim.
+        config_file: a Zenoh JSON5 config file (TLS, usrpwd, access control; see ``deploy/``)
+            loaded first; the fields above are applied on top of it.
     """
 
     mode: str = "peer"
@@ -37,6 +40,7 @@ class SessionConfig:
     shared_memory: bool = True
     lease_ms: int = 2000
     extra: tuple[tuple[str, object], ...] = field(default_factory=tuple)
+    config_file: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in VALID_MODES:
@@ -44,6 +48,8 @@ class SessionConfig:
         for ep in (*self.connect, *self.listen):
             if not isinstance(ep, str) or "/" not in ep:
                 raise ConfigError(f"endpoint {ep!r} must look like 'tcp/HOST:PORT'")
+        if self.config_file is not None and not os.path.isfile(self.config_file):
+            raise ConfigError(f"zenoh config file {self.config_file!r} does not exist")
         if not 200 <= int(self.lease_ms) <= 600_000:
             raise ConfigError(f"lease_ms={self.lease_ms} must be in [200, 600000]")
 
@@ -51,7 +57,7 @@ class SessionConfig:
         """Build the ``zenoh.Config``."""
         import zenoh
 
-        cfg = zenoh.Config()
+        cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
         cfg.insert_json5("mode", json.dumps(self.mode))
         cfg.insert_json5("scouting/multicast/enabled", "false")
         cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))

@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Install everything visfly-dist needs on a Debian machine with Python 3.11, then run the main job
+# (PPO on the navigation task: local scene workers spawned automatically, generated scenes).
+#   bash setup.sh              install + train
+#   VISFLY_SETUP_ONLY=1 bash setup.sh   install only (used by test.sh)
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")"
+PY="${PYTHON:-python3}"
+export PIP_ROOT_USER_ACTION=ignore
+
+# Headless OpenGL (EGL) for the pyrender backend: Mesa's llvmpipe on CPU, the vendor's EGL on a GPU.
+egl_pkgs="libegl1 libegl-mesa0 libgl1-mesa-dri libgl1"
+if ! dpkg -s $egl_pkgs >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ]; then
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $egl_pkgs >/dev/null
+  else
+    echo "setup.sh: please install the Debian packages: $egl_pkgs (needs root)" >&2
+    exit 1
+  fi
+fi
+
+# torch first and pinned: resolving stable-baselines3 first would pull a multi-GB CUDA build.
+"$PY" -m pip install -q --disable-pip-version-check "torch==2.13.0"
+"$PY" -m pip install -q --disable-pip-version-check -e ".[bench,dev]"
+
+if [ "${VISFLY_SETUP_ONLY:-0}" != "1" ]; then
+  exec "$PY" -m visfly_dist.cli train navigation "$@"
+fi
