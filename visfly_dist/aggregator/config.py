@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import re
 import secrets
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.keys import check_chunk
@@ -139,7 +139,6 @@ class SceneSetConfig:
     swap_every_resets: int = 0
     shuffle: bool = True
     seed: int = 0
-    _extra: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.sources, str):

@@ -82,12 +82,7 @@ def normalize_visual(mesh: trimesh.Trimesh) -> None:
     colours are what the raycast renderer and the PLY writer understand, and they lose nothing here.
     """
     visual = mesh.visual
-    if visual.kind != "texture" or visual.uv is None:
-        if visual.kind == "texture" and _material_image(visual.material) is None:
-            color = np.asarray(visual.material.main_color, dtype=np.uint8)
-            mesh.visual = trimesh.visual.ColorVisuals(mesh, face_colors=np.tile(color, (len(mesh.faces), 1)))
-        return
-    if _material_image(visual.material) is None:
+    if isinstance(visual, trimesh.visual.TextureVisuals) and (visual.uv is None or _material_image(visual.material) is None):
         color = np.asarray(visual.material.main_color, dtype=np.uint8)
         mesh.visual = trimesh.visual.ColorVisuals(mesh, face_colors=np.tile(color, (len(mesh.faces), 1)))
 

@@ -1,0 +1,212 @@
+"""Feature extractors and policy settings for Dict observations, after VisFly's policy.
+
+Every entry of the observation dict gets its own small network; their outputs are concatenated:
+
+| entry shape        | what it is                          | network                                  |
+|--------------------|-------------------------------------|------------------------------------------|
+| ``(C, H, W)``      | a camera image (depth, RGB, ...)    | image backbone -> 128, ReLU              |
+| ``(D,)``           | a vector (``state``, ``target``...) | MLP 128-64, ReLU                         |
+| ``(K, D)``         | a set of rows (e.g. teammates)      | one MLP 128-64 shared by the rows, concat|
+
+Images are normalised inside the network, so SB3 must not touch them (``normalize_images=False``,
+which :func:`visfly_policy_kwargs` sets):
+
+- depth (float, 1 channel): metres divided by the space's upper bound (``far``, 20 m by default),
+  clipped to ``[0, 1]``; with ``depth_scale="log"``, ``log1p(d) / log1p(far)`` instead, which gives
+  near obstacles more of the range;
+- uint8 (RGB): divided by 255;
+- segmentation (uint16 ids): divided by the space's upper bound.
+
+Image backbones: ``"visfly-cnn"`` (VisFly's: conv 6/12/18 channels, kernels 5/3/3, each followed by
+ReLU and a 2x2 max-pool, then a linear layer to 128) and ``"resnet-tiny"`` (three residual stages of
+16/32/64 channels with stride-2 downsampling, global average pooling, linear to 128).
+
+Training with your own algorithm on a visfly-dist env::
+
+    from stable_baselines3 import PPO
+    from visfly_dist import make_env
+    from visfly_dist.training.extractors import visfly_policy_kwargs
+
+    env = make_env("navigation", num_envs=100)
+    model = PPO("MultiInputPolicy", env, policy_kwargs=visfly_policy_kwargs())
+    model.learn(1_000_000)
+
+Any SB3 algorithm with a ``MultiInputPolicy`` (SAC, TD3, A2C, RecurrentPPO from sb3-contrib) takes
+the same ``policy_kwargs``; for your own torch code, ``VisflyExtractor(env.observation_space)``
+maps a dict of batched tensors to ``(B, features_dim)`` features.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from torch import nn
+
+from visfly_dist.errors import ConfigError
+
+BACKBONES = ("visfly-cnn", "resnet-tiny")
+DEPTH_SCALES = ("linear", "log")
+IMAGE_FEATURES = 128
+VECTOR_HIDDEN = (128, 64)
+DEFAULT_FAR = 20.0
+
+
+class ImageNormalizer(nn.Module):
+    """Maps raw image observations to roughly ``[0, 1]`` floats (see the module docstring)."""
+
+    def __init__(self, space: spaces.Box, depth_scale: str = "linear") -> None:
+        super().__init__()
+        high = float(np.max(space.high)) if np.all(np.isfinite(space.high)) else DEFAULT_FAR
+        self.kind = "uint8" if space.dtype == np.uint8 else ("depth" if np.issubdtype(space.dtype, np.floating) else "ids")
+        self.log = self.kind == "depth" and depth_scale == "log"
+        self.scale = 255.0 if self.kind == "uint8" else max(high, 1e-6)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.float()
+        if self.kind != "depth":
+            return x / self.scale
+        x = x.clamp(0.0, self.scale)
+        if self.log:
+            return torch.log1p(x) / math.log1p(self.scale)
+        return x / self.scale
+
+
+def visfly_cnn(in_channels: int) -> nn.Sequential:
+    """VisFly's image trunk (without the final linear layer): 6/12/18 channels, kernels 5/3/3."""
+    layers: list[nn.Module] = []
+    for out_channels, kernel in zip((6, 12, 18), (5, 3, 3)):
+        layers += [nn.Conv2d(in_channels, out_channels, kernel), nn.ReLU(), nn.MaxPool2d(2)]
+        in_channels = out_channels
+    return nn.Sequential(*layers, nn.Flatten())
+
+
+class ResidualBlock(nn.Module):
+    """Two 3x3 convolutions with a skip connection; ``stride`` 2 halves the resolution."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1)
+        self.conv2 = nn.Conv2d(out_channels, out_channels, 3, padding=1)
+        self.skip = (
+            nn.Identity()
+            if stride == 1 and in_channels == out_channels
+            else nn.Conv2d(in_channels, out_channels, 1, stride=stride)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(self.conv2(torch.relu(self.conv1(x))) + self.skip(x))
+
+
+def resnet_tiny(in_channels: int) -> nn.Sequential:
+    """A small residual CNN: stem 16, stages 16/32/64 (the last two stride 2), global average pool."""
+    return nn.Sequential(
+        nn.Conv2d(in_channels, 16, 3, padding=1),
+        nn.ReLU(),
+        ResidualBlock(16, 16, 1),
+        ResidualBlock(16, 32, 2),
+        ResidualBlock(32, 64, 2),
+        nn.AdaptiveAvgPool2d(1),
+        nn.Flatten(),
+    )
+
+
+def image_encoder(space: spaces.Box, backbone: str, depth_scale: str, key: str) -> nn.Sequential:
+    """Normaliser, backbone and a linear layer to 128 features, sized with one dummy forward pass."""
+    trunk = {"visfly-cnn": visfly_cnn, "resnet-tiny": resnet_tiny}[backbone](space.shape[0])
+    normalizer = ImageNormalizer(space, depth_scale)
+    with torch.no_grad():
+        dummy = torch.zeros((1, *space.shape))
+        try:
+            flat = trunk(normalizer(dummy)).shape[1]
+        except RuntimeError as exc:
+            raise ConfigError(
+                f"observation {key!r} of shape {space.shape} is too small for backbone {backbone!r} "
+                f"({exc}); use images of at least 32x32 or backbone='resnet-tiny'"
+            ) from exc
+    return nn.Sequential(normalizer, trunk, nn.Linear(flat, IMAGE_FEATURES), nn.ReLU())
+
+
+def mlp(in_dim: int, hidden: tuple[int, ...] = VECTOR_HIDDEN) -> nn.Sequential:
+    """Linear + ReLU layers of the given widths."""
+    layers: list[nn.Module] = []
+    for width in hidden:
+        layers += [nn.Linear(in_dim, width), nn.ReLU()]
+        in_dim = width
+    return nn.Sequential(*layers)
+
+
+class RowwiseMLP(nn.Module):
+    """One MLP applied to each row of a ``(B, K, D)`` input; the ``K`` outputs are concatenated."""
+
+    def __init__(self, rows: int, dim: int) -> None:
+        super().__init__()
+        self.net = mlp(dim)
+        self.out_dim = rows * VECTOR_HIDDEN[-1]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.float()).flatten(1)
+
+
+class VisflyExtractor(BaseFeaturesExtractor):
+    """Per-entry encoders for a Dict observation space, concatenated (see the module docstring).
+
+    Args:
+        observation_space: a ``spaces.Dict`` of ``Box`` entries: images ``(C, H, W)``, vectors
+            ``(D,)`` or row sets ``(K, D)``.
+        backbone: image backbone, one of ``BACKBONES``.
+        depth_scale: ``"linear"`` (metres / far) or ``"log"`` (``log1p(d) / log1p(far)``).
+
+    Attributes:
+        features_dim: width of the output, ``128`` per image + ``64`` per vector and per row.
+    """
+
+    def __init__(self, observation_space: spaces.Dict, backbone: str = "visfly-cnn", depth_scale: str = "linear") -> None:
+        if not isinstance(observation_space, spaces.Dict):
+            raise ConfigError(f"VisflyExtractor needs a spaces.Dict observation space, got {observation_space!r}")
+        if backbone not in BACKBONES:
+            raise ConfigError(f"backbone={backbone!r} is not known; accepted: {BACKBONES}")
+        if depth_scale not in DEPTH_SCALES:
+            raise ConfigError(f"depth_scale={depth_scale!r} is not known; accepted: {DEPTH_SCALES}")
+        encoders: dict[str, nn.Module] = {}
+        total = 0
+        for key, space in observation_space.spaces.items():
+            if not isinstance(space, spaces.Box) or len(space.shape) not in (1, 2, 3):
+                raise ConfigError(
+                    f"observation {key!r} is {space!r}; VisflyExtractor accepts Box entries of shape (D,), (K, D) or (C, H, W)"
+                )
+            if len(space.shape) == 3:
+                encoders[key] = image_encoder(space, backbone, depth_scale, key)
+                total += IMAGE_FEATURES
+            elif len(space.shape) == 2:
+                encoders[key] = RowwiseMLP(*space.shape)
+                total += encoders[key].out_dim
+            else:
+                encoders[key] = mlp(space.shape[0])
+                total += VECTOR_HIDDEN[-1]
+        super().__init__(observation_space, features_dim=total)
+        self.encoders = nn.ModuleDict(encoders)
+
+    def forward(self, observations: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([enc(observations[key].float()) for key, enc in self.encoders.items()], dim=1)
+
+
+def visfly_policy_kwargs(backbone: str = "visfly-cnn", depth_scale: str = "linear") -> dict[str, Any]:
+    """SB3 ``policy_kwargs`` for ``"MultiInputPolicy"``: VisflyExtractor, actor/critic 64-64 ReLU.
+
+    ``normalize_images=False`` because the extractor normalises images itself (float depth in
+    metres would otherwise be treated as a flat vector or divided by 255).
+    """
+    if backbone not in BACKBONES:
+        raise ConfigError(f"backbone={backbone!r} is not known; accepted: {BACKBONES}")
+    return dict(
+        features_extractor_class=VisflyExtractor,
+        features_extractor_kwargs=dict(backbone=backbone, depth_scale=depth_scale),
+        net_arch=dict(pi=[64, 64], vf=[64, 64]),
+        activation_fn=nn.ReLU,
+        normalize_images=False,
+    )
