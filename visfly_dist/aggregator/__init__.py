@@ -1,1 +1,6 @@
-"""aggregator."""
+"""The distribution layer between the env and the scene workers: pool, scenes, fan-out, recovery."""
+
+from visfly_dist.aggregator.aggregator import Aggregator, Observation
+from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig
+
+__all__ = ["Aggregator", "Observation", "PoolConfig", "SceneSetConfig"]

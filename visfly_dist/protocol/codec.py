@@ -26,7 +26,7 @@ _ND = "__nd__"
 
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
-        arr = np.ascontiguousarray(obj)
+        arr = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)  # ascontiguousarray makes 0-d arrays 1-d
         if arr.dtype.str not in ALLOWED_DTYPES:
             raise ProtocolError(f"array dtype {arr.dtype} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
         return {_ND: 1, "dtype": arr.dtype.str, "shape": list(arr.shape), "data": arr.tobytes()}

@@ -6,7 +6,7 @@ the order of the node names (sorted, so the numbering is deterministic).
 
 Up axis: our world is z-up. glTF (glb/gltf) is y-up by specification, so by default those files are
 rotated +90 deg about x (glTF +y becomes our +z, glTF +z becomes our -y). obj, ply and stl carry no
-convention; they are taken as z-up by default. ``up_axis="y"`` or ``"z"`` overrides the default.
+convention; they are taken as z-up by default. An OBJ file gives one object per ``o`` directive. ``up_axis="y"`` or ``"z"`` overrides the default.
 """
 
 from __future__ import annotations
@@ -51,7 +51,9 @@ def read_trimesh_scene(path: Path, roots: Sequence[Path] | None = None) -> trime
     if suffix == ".gltf" and roots is not None:
         _check_gltf_references(path, roots)
     try:
-        return trimesh.load_scene(str(path), process=False)
+        # OBJ: one object per ``o`` directive (trimesh merges them by material otherwise).
+        options = {"split_objects": True} if suffix == ".obj" else {}
+        return trimesh.load_scene(str(path), process=False, **options)
     except Exception as exc:  # trimesh raises many types on malformed files
         raise SceneError(f"cannot read mesh file {str(path)!r}: {type(exc).__name__}: {exc}") from exc
 

@@ -48,8 +48,8 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 from visfly_dist.errors import ConfigError
+from visfly_dist.training.config import BACKBONES
 
-BACKBONES = ("visfly-cnn", "resnet-tiny")
 DEPTH_SCALES = ("linear", "log")
 IMAGE_FEATURES = 128
 VECTOR_HIDDEN = (128, 64)

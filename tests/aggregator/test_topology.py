@@ -1,0 +1,81 @@
+"""Pools behind a router: runs stay apart, remote workers join, TCP without shared memory, launch CLI."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.aggregator.conftest import make_aggregator, pid_alive, reference, spawn_poses
+from tests.helpers import REPO, _read_line, free_port, start_worker, stop_process, wait_for
+
+SCENES = {"sources": ("gen:garage-stones",), "num_scenes": 2, "agents_per_scene": 2}
+
+
+def _start_cli(*args: str) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", *args], cwd=REPO,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    line = _read_line(proc, 30.0)
+    if not line:
+        stop_process(proc)
+        raise RuntimeError(f"visfly-dist {args[0]} printed no ready line")
+    return proc, line
+
+
+@pytest.fixture(scope="module")
+def router():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc, line = _start_cli("router", "--listen", endpoint)
+    assert "router ready" in line
+    yield endpoint
+    assert stop_process(proc) == 0  # closes cleanly on SIGTERM
+
+
+def test_runs_on_one_router_stay_apart_without_shared_memory(router, scene_root):
+    remote = start_worker("run-b", router, scene_root, connect=True, shm=False, worker_id="remote-b")
+    a = make_aggregator(pool={"connect": (router,), "num_local_workers": 1, "run_id": "run-a", "shared_memory": False},
+                        scenes=SCENES)
+    b = make_aggregator(pool={"connect": (router,), "num_local_workers": 1, "run_id": "run-b", "shared_memory": False},
+                        scenes=SCENES)
+    try:
+        a.start()
+        b.start()
+        assert a.workers == ["local-0"]
+        assert b.workers == ["local-0", "remote-b"]
+        assert sorted(b.assignment().values()) == ["local-0", "remote-b"]
+        assert {h["pid"] for h in a.health()} == {a.local_worker_pids()["local-0"]}
+        for agg in (a, b):
+            poses = spawn_poses(agg)
+            obs = agg.observe(poses)
+            np.testing.assert_allclose(obs.images["depth"], reference(agg, poses)["depth"], atol=1e-4)
+    finally:
+        a.close()
+        b.close()
+        stop_process(remote)
+
+
+def test_launched_pool_restarts_workers_and_the_aggregator_follows(router, scene_root):
+    launch, line = _start_cli("launch", "--workers", "1", "--run-id", "run-c", "--connect", router,
+                              "--scene-root", str(scene_root), "--backend", "raycast", "--worker-prefix", "lw")
+    assert "launch ready" in line
+    try:
+        with make_aggregator(pool={"connect": (router,), "num_local_workers": 0, "run_id": "run-c"},
+                             scenes=SCENES) as agg:
+            assert agg.workers == ["lw-0"]
+            poses = spawn_poses(agg)
+            before = agg.observe(poses)
+            pid = agg.health()[0]["pid"]
+            os.kill(pid, signal.SIGKILL)
+            assert wait_for(lambda: [h.get("pid") for h in agg.health()] not in ([], [pid], [None]), timeout=60)
+            obs = agg.observe(poses)  # same worker id, new process: scenes reloaded there
+            assert obs.lost.all()
+            np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])
+            assert not agg.observe(poses).lost.any()
+            new_pid = agg.health()[0]["pid"]
+    finally:
+        assert stop_process(launch) == 0
+    assert wait_for(lambda: not pid_alive(new_pid), timeout=10)

@@ -1,0 +1,177 @@
+"""DroneEnvBase as an SB3 VecEnv: spaces, auto-reset semantics, infos, seeding, gradients, close."""
+
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.vec_env import VecEnv, VecFrameStack, VecMonitor, VecNormalize
+
+from visfly_dist.client.noise import NoiseSpec
+from visfly_dist.errors import ConfigError
+
+from .conftest import make_counter
+
+
+@pytest.fixture(scope="module")
+def env():
+    noise = {"state": [NoiseSpec("gaussian", {"std": 0.01})], "depth": [NoiseSpec("gaussian", {"std": 0.05})]}
+    env = make_counter(noise=noise, seed=3)
+    yield env
+    env.close()
+
+
+def hover(env):
+    return np.tile(env.quad.hover_action().numpy(), (env.num_envs, 1))
+
+
+def test_spaces_and_reset_observation(env):
+    assert isinstance(env, VecEnv) and env.num_envs == 4
+    assert env.action_space.shape == (4,) and env.action_space.dtype == np.float32
+    assert env.action_space.low.min() == -1 and env.action_space.high.max() == 1
+    obs = env.reset()
+    assert set(obs) == {"state", "depth", "step"}
+    assert obs["state"].shape == (4, 13) and obs["state"].dtype == np.float32
+    assert obs["depth"].shape == (4, 1, 16, 16) and obs["depth"].dtype == np.float32
+    for i in range(4):
+        assert env.observation_space.contains({k: v[i] for k, v in obs.items()})
+    pos = obs["state"][:, :3]
+    assert np.all(np.abs(pos - [0.0, 0.0, 2.0]) <= [1.05, 1.05, 0.55])  # spawn box (+ state noise)
+    assert np.all(obs["step"] == 0)
+
+
+def test_depth_sees_the_floor_at_the_right_distance(env):
+    env.reset()
+    level = np.tile([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], (env.num_envs, 1))
+    level[:, 3:] = [np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0]  # pitched down 90 deg: camera looks at -z
+    level[:, 2] = 2.0
+    obs = env.aggregator.observe(level)
+    centre = obs.images["depth"][:, 0, 7:9, 7:9]
+    assert np.allclose(centre, 2.0, atol=0.05)  # the floor's top is z = 0
+
+
+def test_time_limit_truncates_and_terminal_observation_is_the_one_before_reset(env):
+    obs = env.reset()
+    rewards = np.zeros(4)
+    for t in range(1, 6):
+        prev = obs
+        obs, reward, done, infos = env.step(hover(env))
+        rewards += reward
+        assert reward.dtype == np.float32 and np.all(np.isfinite(reward))
+        if t < 5:
+            assert not done.any() and np.all(obs["step"] == t)
+            assert all(info["TimeLimit.truncated"] is False and "terminal_observation" not in info for info in infos)
+    assert done.all()
+    for i, info in enumerate(infos):
+        assert info["TimeLimit.truncated"] is True and info["is_success"] is False
+        term = info["terminal_observation"]
+        assert term["step"][0] == 5 and obs["step"][i, 0] == 0
+        assert np.linalg.norm(term["state"][:3] - prev["state"][i, :3]) < 0.2  # continuous with the last step
+        assert info["episode"]["l"] == 5 and info["episode"]["r"] == pytest.approx(rewards[i], rel=1e-5)
+        assert set(term) == set(env.observation_space.spaces)
+
+
+def test_success_terminates_only_that_agent(env):
+    env.reset()
+    env.step(hover(env))
+    env.force_success[1] = True
+    try:
+        obs, _, done, infos = env.step(hover(env))
+    finally:
+        env.force_success[:] = False
+    assert done.tolist() == [False, True, False, False]
+    assert infos[1]["is_success"] is True and infos[1]["TimeLimit.truncated"] is False
+    assert infos[1]["terminal_observation"]["step"][0] == 2 and obs["step"][1, 0] == 0
+    assert obs["step"][0, 0] == 2 and "episode" not in infos[0]
+    _, _, done, _ = env.step(hover(env))
+    assert not done.any()
+
+
+def test_step_tensor_keeps_terminated_and_truncated_apart(env):
+    env.reset()
+    for _ in range(4):
+        env.step_tensor(torch.as_tensor(hover(env)))
+    env.force_success[0] = True
+    try:
+        obs, reward, terminated, truncated, info = env.step_tensor(torch.as_tensor(hover(env)))
+    finally:
+        env.force_success[:] = False
+    assert terminated.tolist() == [True, False, False, False]
+    assert truncated.tolist() == [False, True, True, True]
+    assert info["terminal_observation"]["step"][:, 0].tolist() == [5, 5, 5, 5]
+    assert obs["step"][:, 0].tolist() == [0, 0, 0, 0] and isinstance(reward, torch.Tensor)
+
+
+def test_same_seed_reproduces_the_observation_sequence(env):
+    rng = np.random.default_rng(0)
+    actions = [rng.uniform(-1, 1, (4, 4)).astype(np.float32) for _ in range(7)]
+
+    def rollout(seed):
+        env.seed(seed)
+        seq = [env.reset()]
+        seq += [env.step(a)[0] for a in actions]
+        return seq
+
+    a, b, c = rollout(11), rollout(11), rollout(12)
+    for x, y in zip(a, b):
+        for k in x:
+            np.testing.assert_array_equal(x[k], y[k])
+    assert not np.array_equal(a[0]["state"], c[0]["state"])
+
+
+def test_sb3_wrappers_step(env):
+    env.reset()
+    for wrapped in (VecMonitor(env), VecNormalize(env), VecFrameStack(env, n_stack=2)):
+        obs = wrapped.reset()
+        for _ in range(6):
+            obs, reward, done, infos = wrapped.step(np.stack([env.action_space.sample() for _ in range(4)]))
+            assert np.all(np.isfinite(reward))
+        assert set(obs) == {"state", "depth", "step"}
+    monitor = VecMonitor(env)
+    monitor.reset()
+    for _ in range(5):
+        _, _, done, infos = monitor.step(hover(env))
+    assert done.all() and infos[0]["episode"]["l"] == 5
+
+
+def test_vec_env_attribute_methods(env):
+    assert env.get_attr("num_envs") == [4, 4, 4, 4]
+    assert env.get_attr("num_envs", indices=[1, 2]) == [4, 4]
+    assert env.env_is_wrapped(object) == [False] * 4
+    assert env.env_method("out_of_bounds", indices=0)[0].shape == (4,)
+    env.set_attr("custom_flag", 1)
+    assert env.custom_flag == 1
+    with pytest.raises(ConfigError, match="applies to all 4 agents"):
+        env.set_attr("custom_flag", 2, indices=[0])
+
+
+def test_bad_action_shape_is_rejected(env):
+    env.reset()
+    with pytest.raises(ConfigError, match=r"actions of shape \(3, 4\) must be \(4, 4\)"):
+        env.step(np.zeros((3, 4), np.float32))
+
+
+def test_gradients_flow_from_reward_to_actions(env):
+    env.reset()
+    env.config.requires_grad = True
+    try:
+        env.detach()
+        actions = torch.as_tensor(hover(env)).requires_grad_()
+        total = 0.0
+        for _ in range(3):
+            _, reward, _, _, _ = env.step_tensor(actions)
+            total = total + reward.sum()
+        total.backward()
+        assert actions.grad is not None and torch.isfinite(actions.grad).all()
+        assert actions.grad[:, 0].gt(0).all()  # more thrust -> higher -> more reward
+        env.detach()
+        assert not env.state.pos.requires_grad
+    finally:
+        env.config.requires_grad = False
+
+
+def test_close_is_idempotent_and_the_env_refuses_work_afterwards():
+    env = make_counter(num_envs=1)
+    with env:
+        env.reset()
+    env.close()
+    with pytest.raises(ConfigError, match="closed"):
+        env.reset()

@@ -1,0 +1,78 @@
+"""Gymnasium views: the VectorEnv (SAME_STEP) and the single-agent Env, checked by the libraries' checkers."""
+
+import gymnasium
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from gymnasium.vector import AutoresetMode, VectorEnv
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+from visfly_dist.errors import ConfigError
+
+from .conftest import make_counter
+
+
+@pytest.fixture(scope="module")
+def vec_env():
+    env = make_counter(num_envs=2, max_episode_steps=3)
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def one_env():
+    env = make_counter(num_envs=1, max_episode_steps=4)
+    yield env
+    env.close()
+
+
+def test_vector_view_properties(vec_env):
+    view = vec_env.as_gymnasium()
+    assert isinstance(view, VectorEnv) and view.num_envs == 2
+    assert view.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    assert view.single_observation_space == vec_env.observation_space
+    assert view.single_action_space == vec_env.action_space
+    assert view.action_space.shape == (2, 4)
+    assert view.observation_space["depth"].shape == (2, 1, 16, 16)
+
+
+def test_vector_view_reset_step_and_same_step_autoreset(vec_env):
+    view = vec_env.as_gymnasium()
+    obs, info = view.reset(seed=5)
+    assert view.observation_space.contains(obs) and info == {}
+    again, _ = view.reset(seed=5)
+    np.testing.assert_array_equal(obs["state"], again["state"])
+    for t in range(1, 4):
+        obs, reward, terminated, truncated, infos = view.step(view.action_space.sample())
+        assert view.observation_space.contains(obs)
+        assert reward.shape == (2,) and terminated.dtype == bool and truncated.dtype == bool
+        if t < 3:
+            assert not (terminated | truncated).any() and "final_obs" not in infos
+    assert truncated.all() and not terminated.any()
+    assert infos["_final_obs"].all() and infos["_final_info"].all()
+    for i in range(2):
+        final = infos["final_obs"][i]
+        assert vec_env.observation_space.contains(final) and final["step"][0] == 3
+        assert obs["step"][i, 0] == 0
+    assert infos["final_info"]["is_success"].tolist() == [False, False]
+    assert infos["collision"].shape == (2,) and infos["_collision"].all()
+
+
+def test_single_agent_view_passes_gymnasium_and_sb3_checkers(one_env):
+    view = one_env.as_gymnasium_env()
+    assert isinstance(view, gymnasium.Env)
+    gym_check_env(view, skip_render_check=True, skip_close_check=True)
+    sb3_check_env(view, warn=False, skip_render_check=True)
+
+
+def test_single_agent_view_returns_the_terminal_observation(one_env):
+    view = one_env.as_gymnasium_env()
+    view.reset(seed=1)
+    for t in range(1, 5):
+        obs, reward, terminated, truncated, info = view.step(view.action_space.sample())
+    assert truncated and not terminated and obs["step"][0] == 4 and np.isfinite(reward)
+
+
+def test_single_agent_view_needs_one_agent(vec_env):
+    with pytest.raises(ConfigError, match="needs num_envs=1, got num_envs=2"):
+        vec_env.as_gymnasium_env()

@@ -1,0 +1,135 @@
+"""The msgpack codec: round trips of every message and array dtype; every malformed payload rejected."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from visfly_dist.errors import ProtocolError
+from visfly_dist.protocol import codec
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.codec import PROTOCOL_VERSION, decode, encode, error_message
+from visfly_dist.protocol.messages import (
+    Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene, parse_request,
+)
+
+IDENTITY = [1.0, 0.0, 0.0, 0.0]
+
+
+def _poses(n: int) -> np.ndarray:
+    return np.array([[i, 2.0 * i, 1.5, *IDENTITY] for i in range(n)], dtype=np.float32).reshape(n, 7)
+
+
+REQUESTS = [
+    LoadScene("s0", "gen:pillars?seed=1", (CameraSpec(), CameraSpec(name="rgb", kind="rgb", width=32, height=24)),
+              drone_radius=0.15, multi_agent=True),
+    UnloadScene("s0"),
+    StepRequest((ScenePoses("s0", _poses(3)), ScenePoses("s1", _poses(0))), render=True, query=False, search_radius=4.0),
+    SampleSpawn("s0", 5, 0.3, "uniform", (-1.0, -2.0, 0.5), (1.0, 2.0, 2.5), seed=7),
+    Health(),
+]
+
+
+@pytest.mark.parametrize("request_", REQUESTS, ids=lambda r: r.type)
+def test_every_request_round_trips(request_):
+    parsed = parse_request(decode(encode(request_.to_message())))
+    assert type(parsed) is type(request_)
+    if isinstance(request_, StepRequest):
+        assert (parsed.render, parsed.query, parsed.search_radius) == (True, False, 4.0)
+        for got, sent in zip(parsed.scenes, request_.scenes):
+            assert got.scene_key == sent.scene_key
+            np.testing.assert_array_equal(got.poses, sent.poses)
+            assert got.poses.dtype == np.float64
+    else:
+        assert parsed == request_
+
+
+@pytest.mark.parametrize("dtype", ["bool", "uint8", "uint16", "int32", "int64", "float32", "float64"])
+@pytest.mark.parametrize("shape", [(), (0,), (5,), (2, 3, 4), (1, 1, 2, 3)])
+def test_arrays_of_every_allowed_dtype_round_trip(dtype, shape):
+    rng = np.random.default_rng(0)
+    arr = np.asarray(rng.random(shape) * 100).astype(dtype)
+    out = decode(encode({"type": "x", "a": arr, "nested": {"b": [arr]}}))
+    for got in (out["a"], out["nested"]["b"][0]):
+        assert got.dtype == arr.dtype and got.shape == arr.shape
+        np.testing.assert_array_equal(got, arr)
+
+
+def test_non_contiguous_arrays_travel_as_their_values():
+    arr = np.arange(24, dtype=np.float32).reshape(4, 6)[:, ::2]
+    np.testing.assert_array_equal(decode(encode({"type": "x", "a": arr}))["a"], arr)
+
+
+def test_replies_round_trip_with_plain_values_and_numpy_scalars():
+    reply = {"type": "step_result", "scenes": [{"scene_key": "s", "images": {"depth": np.ones((2, 1, 4, 4), np.float32)},
+                                                "distance": np.float32(1.5), "n": np.int64(3), "t": (1, 2)}],
+             "timings": {"total_s": 0.01}}
+    out = decode(encode(reply))
+    assert out["version"] == PROTOCOL_VERSION and out["scenes"][0]["n"] == 3 and out["scenes"][0]["t"] == [1, 2]
+    assert out["scenes"][0]["images"]["depth"].shape == (2, 1, 4, 4)
+
+
+def test_error_message_carries_type_and_message():
+    out = decode(error_message("SceneError", "no such scene"))
+    assert out == {"version": PROTOCOL_VERSION, "type": "error", "error": "SceneError", "message": "no such scene"}
+
+
+def test_encode_rejects_what_cannot_travel():
+    with pytest.raises(ProtocolError, match="dtype complex128 cannot travel"):
+        encode({"type": "x", "a": np.zeros(2, complex)})
+    with pytest.raises(ProtocolError, match="cannot encode object"):
+        encode({"type": "x", "a": object()})
+    with pytest.raises(ProtocolError, match="needs a 'type'"):
+        encode({"a": 1})
+
+
+def _raw(obj) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def _nd(dtype="<f4", shape=(2,), data=b"\0" * 8):
+    return {"__nd__": 1, "dtype": dtype, "shape": list(shape), "data": data}
+
+
+@pytest.mark.parametrize("payload, match", [
+    (b"", "not a valid msgpack message"),
+    (b"\xc1\xff\x00garbage", "not a valid msgpack message"),
+    (_raw([1, 2, 3]), "must be a map, got list"),
+    (_raw("hello"), "must be a map, got str"),
+    (_raw({"type": "health"}), "protocol version None not supported"),
+    (_raw({"version": 99, "type": "health"}), "protocol version 99 not supported"),
+    (_raw({"version": PROTOCOL_VERSION}), "no string 'type'"),
+    (_raw({"version": PROTOCOL_VERSION, "type": 5}), "no string 'type'"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(dtype="|O")}), "dtype '\\|O' not allowed"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(dtype="<c16")}), "dtype '<c16' not allowed"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(3,))}), "data is 8 bytes but .* need 12"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(-2,))}), "shape .* non-negative ints"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=[1] * 9)}), "at most 8"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(data="text")}), "data must be bytes"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(1 << 20, 1 << 20))}), "exceeds the bound"),
+    (_raw({1: "int keys", "version": PROTOCOL_VERSION, "type": "x"}), "not a valid msgpack message"),
+])
+def test_decode_rejects_malformed_payloads(payload, match):
+    with pytest.raises(ProtocolError, match=match):
+        decode(payload)
+
+
+def test_decode_rejects_random_bytes():
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        blob = rng.integers(0, 256, size=int(rng.integers(1, 64)), dtype=np.uint8).tobytes()
+        with pytest.raises(ProtocolError):
+            decode(blob)
+
+
+def test_decode_rejects_oversize_payloads(monkeypatch):
+    monkeypatch.setattr(codec, "MAX_MESSAGE_BYTES", 1024)
+    with pytest.raises(ProtocolError, match="message of 2048 bytes exceeds the bound 1024"):
+        decode(b"\0" * 2048)
+
+
+def test_decoded_arrays_are_read_only_views():
+    out = decode(encode({"type": "x", "a": np.zeros(3, np.float32)}))
+    with pytest.raises(ValueError):
+        out["a"][0] = 1.0

@@ -1,0 +1,298 @@
+"""The worker pool: the Zenoh session, who is alive, local worker processes, and fan-out requests.
+
+Invariants (zenoh-facts.md):
+- Liveliness is the source of truth for "alive": a worker is usable while its token exists and we
+  have not banned it. A DELETE (process gone, or its lease expired when hung) removes it at once.
+  A worker that misses a deadline is banned even if its token lingers; a later DELETE lifts the
+  ban, so a worker restarted under the same id can come back. Each PUT bumps the worker's
+  generation: a scene loaded at an older generation is gone from the worker and must be reloaded.
+- Every request is a ``get`` with a timeout and ``ConsolidationMode.NONE``; all gets of a batch are
+  issued before any is gathered, so a batch costs the slowest worker, not the sum. Zero replies
+  (worker gone, or it dropped the query) and a ``Timeout`` reply both mean the worker is failing;
+  an error reply in our codec is the worker reporting a problem with the request.
+- Local workers are spawned with subprocess (fork + exec, safe after the session opened) and are
+  stopped on close, SIGTERM first, then SIGKILL after a grace period. The session is closed on
+  close, or the interpreter would hang at exit on the liveliness subscriber's thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import socket
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import zenoh
+
+from visfly_dist.aggregator.config import PoolConfig
+from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
+from visfly_dist.errors import NoWorkersError, ProtocolError, RemoteError
+from visfly_dist.protocol import keys
+from visfly_dist.protocol.codec import decode, encode
+from visfly_dist.protocol.session import SessionConfig, open_session
+
+log = logging.getLogger(__name__)
+
+STOP_GRACE_S = 5.0
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _loopback(endpoint: str) -> str:
+    for any_host in ("0.0.0.0", "[::]"):
+        endpoint = endpoint.replace(f"/{any_host}:", "/127.0.0.1:")
+    return endpoint
+
+
+@dataclass
+class Reply:
+    """The outcome of one request to one worker: exactly one of message, error, failure is set."""
+
+    worker_id: str
+    message: dict[str, Any] | None = None
+    error: RemoteError | None = None
+    failure: str | None = None
+
+
+@dataclass
+class BatchTimings:
+    """Where the time of one fan-out batch went, in seconds."""
+
+    fanout_s: float = 0.0
+    wait_s: float = 0.0
+    decode_s: float = 0.0
+    bytes_in: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+class WorkerPool:
+    """Live workers of one run, and the one place that talks to them."""
+
+    def __init__(self, config: PoolConfig, run_id: str) -> None:
+        self.config = config
+        self.run_id = run_id
+        self._lock = threading.Condition()
+        self._alive: set[str] = set()
+        self._banned: set[str] = set()
+        self._generation: dict[str, int] = {}
+        self._local: dict[str, LocalWorker] = {}
+        self._spawned = 0
+        self._session = None
+        self._subscriber = None
+        self._log_dir: str | None = None
+        self._launch: WorkerLaunchSpec | None = None
+
+    # ----- lifecycle -------------------------------------------------------------------------
+
+    def _session_config(self) -> tuple[SessionConfig, tuple[str, ...]]:
+        """This process's session, and the endpoints local workers connect to."""
+        cfg = self.config
+        common = dict(shared_memory=cfg.shared_memory, lease_ms=cfg.lease_ms)
+        if cfg.connect and not cfg.listen:
+            return SessionConfig(mode="client", connect=cfg.connect, listen=(), **common), cfg.connect
+        listen = cfg.listen or (f"tcp/127.0.0.1:{free_port()}",)
+        workers_connect = cfg.connect or tuple(_loopback(ep) for ep in listen)
+        return SessionConfig(mode="peer", connect=cfg.connect, listen=listen, **common), workers_connect
+
+    def open(self) -> None:
+        """Open the session, watch liveliness, and spawn the local workers (not waiting for them)."""
+        session_cfg, workers_connect = self._session_config()
+        self._session = open_session(session_cfg)
+        try:
+            self._subscriber = self._session.liveliness().declare_subscriber(
+                keys.workers_alive_pattern(self.run_id), self._on_liveliness, history=True)
+            if self.config.num_local_workers:
+                self._log_dir = tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")
+                self._launch = WorkerLaunchSpec(
+                    run_id=self.run_id, connect=workers_connect, scene_roots=self.config.scene_roots,
+                    backend=self.config.backend, shared_memory=self.config.shared_memory,
+                    lease_ms=self.config.lease_ms, parent_pid=os.getpid())
+                for _ in range(self.config.num_local_workers):
+                    self.spawn_local()
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Stop local workers, undeclare, close the session. Idempotent."""
+        local, self._local = list(self._local.values()), {}
+        stop_workers(local, STOP_GRACE_S)
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        if self._log_dir is not None:
+            shutil.rmtree(self._log_dir, ignore_errors=True)
+            self._log_dir = None
+
+    # ----- liveliness ------------------------------------------------------------------------
+
+    def _on_liveliness(self, sample: "zenoh.Sample") -> None:
+        # Runs on Zenoh's callback thread: only touch state under the lock.
+        wid = keys.worker_id_from_alive_key(str(sample.key_expr))
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(wid)
+                self._generation[wid] = self._generation.get(wid, 0) + 1
+            else:
+                self._alive.discard(wid)
+                self._banned.discard(wid)
+            self._lock.notify_all()
+
+    def live_workers(self) -> list[str]:
+        """Ids of the workers that are alive and not banned, sorted."""
+        with self._lock:
+            return sorted(self._alive - self._banned)
+
+    def generation(self, worker_id: str) -> int:
+        """How many times this worker's token appeared (a new value means it restarted)."""
+        with self._lock:
+            return self._generation.get(worker_id, 0)
+
+    def wait_for(self, count: int, timeout_s: float, required: Sequence[str] = (),
+                 remote_may_join: bool = False) -> list[str]:
+        """Wait until ``count`` workers (and every running one of ``required``) are live.
+
+        Returns the live workers when the condition holds, or when the timeout expires, or when no
+        local worker is still starting and no remote one may join.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                live = self._alive - self._banned
+                starting = [w for w in self._local.values() if w.worker_id not in live and w.running()]
+                missing = [w for w in required if w not in live and w in self._local and self._local[w].running()]
+                if len(live) >= count and not missing:
+                    break
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (not starting and not remote_may_join):
+                    break
+                self._lock.wait(min(remaining, 0.1))
+            return sorted(self._alive - self._banned)
+
+    # ----- local processes -------------------------------------------------------------------
+
+    def spawn_local(self) -> str:
+        """Start one more local worker; returns its id (it is live once its token appears)."""
+        assert self._launch is not None and self._log_dir is not None, "no local workers configured"
+        wid = f"local-{self._spawned}"
+        self._spawned += 1
+        worker = LocalWorker(wid, self._launch.argv(wid), f"{self._log_dir}/{wid}.log")
+        self._local[wid] = worker
+        log.info("run %s: started local worker %s (pid %d)", self.run_id, wid, worker.pid)
+        return wid
+
+    def is_local(self, worker_id: str) -> bool:
+        return worker_id in self._local
+
+    def local_pids(self) -> dict[str, int]:
+        """Pid of each local worker process still tracked."""
+        return {wid: w.pid for wid, w in self._local.items()}
+
+    def startup_report(self) -> str:
+        """Why local workers did not come up: each dead one's exit code and output tail."""
+        lines = []
+        for wid, w in self._local.items():
+            if not w.running():
+                lines.append(f"{wid} exited with {w.process.returncode}: {w.log_tail(800)!r}")
+        return "; ".join(lines)
+
+    def drop(self, worker_id: str, reason: str) -> str | None:
+        """Stop using a failing worker; kill it if local and start a replacement when allowed.
+
+        Returns the replacement's id (not yet live), or ``None``.
+        """
+        log.warning("run %s: dropping worker %s: %s", self.run_id, worker_id, reason)
+        with self._lock:
+            if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
+                self._banned.add(worker_id)
+        worker = self._local.pop(worker_id, None)
+        if worker is None:
+            return None
+        worker.kill()
+        if self.config.respawn:
+            return self.spawn_local()
+        return None
+
+    def require_live(self) -> list[str]:
+        """The live workers; NoWorkersError when there is none and none comes up.
+
+        With none live, waits up to ``startup_timeout_s`` for a local worker that is starting or,
+        when remote workers may join (connect or listen endpoints), for any worker.
+        """
+        live = self.live_workers()
+        if live:
+            return live
+        remote = bool(self.config.connect or self.config.listen)
+        if remote or any(w.running() for w in self._local.values()):
+            live = self.wait_for(1, self.config.startup_timeout_s, remote_may_join=remote)
+        if not live:
+            where = f"connect={list(self.config.connect)}" if self.config.connect else "local workers only"
+            detail = self.startup_report()
+            raise NoWorkersError(
+                f"run {self.run_id!r} has no live scene worker left ({where}, respawn={self.config.respawn})"
+                + (f"; {detail}" if detail else "")
+                + "; start workers with `visfly-dist worker --run-id "
+                + f"{self.run_id} --connect ...` or enable respawn")
+        return live
+
+    # ----- requests --------------------------------------------------------------------------
+
+    def call(self, requests: Sequence[tuple[str, dict[str, Any]]], timeout_s: float,
+             timings: BatchTimings | None = None) -> list[Reply]:
+        """Send every request at once, then gather one reply each (same order as ``requests``).
+
+        Never raises for a failing worker (see :class:`Reply`); raises ProtocolError for a reply
+        that is not a valid message (a bug on one side).
+        """
+        assert self._session is not None, "pool is not open"
+        timings = timings if timings is not None else BatchTimings()
+        t0 = time.perf_counter()
+        handlers = []
+        for wid, message in requests:
+            handlers.append(self._session.get(
+                keys.worker_rpc(self.run_id, wid), payload=encode(message), timeout=timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE))
+        t1 = time.perf_counter()
+        raw: list[tuple[bool, bytes] | None] = []
+        for handler in handlers:
+            first = None
+            for reply in handler:  # ends when the query is done: replied, dropped or timed out
+                if first is None:
+                    first = (True, reply.ok.payload.to_bytes()) if reply.ok is not None \
+                        else (False, reply.err.payload.to_bytes())
+            raw.append(first)
+        t2 = time.perf_counter()
+        out = [self._interpret(wid, r, timeout_s) for (wid, _), r in zip(requests, raw)]
+        t3 = time.perf_counter()
+        timings.fanout_s += t1 - t0
+        timings.wait_s += t2 - t1
+        timings.decode_s += t3 - t2
+        timings.bytes_in += sum(len(r[1]) for r in raw if r is not None)
+        return out
+
+    def _interpret(self, wid: str, raw: tuple[bool, bytes] | None, timeout_s: float) -> Reply:
+        if raw is None:
+            return Reply(wid, failure="no reply (worker gone or query dropped)")
+        ok, payload = raw
+        if not ok and payload == b"Timeout":
+            return Reply(wid, failure=f"no reply within {timeout_s:g} s (Timeout)")
+        try:
+            message = decode(payload)
+        except ProtocolError as exc:
+            raise ProtocolError(f"worker {wid!r} sent an invalid {'reply' if ok else 'error reply'}: {exc}") from None
+        if not ok or message.get("type") == "error":
+            return Reply(wid, error=RemoteError(wid, str(message.get("error", "Error")), str(message.get("message", ""))))
+        return Reply(wid, message=message)

@@ -1,0 +1,332 @@
+"""Presenting a benchmark run: text tables, the JSON file, PNG plots and BENCHMARKS.md.
+
+Everything here reads the result dictionary that :mod:`visfly_dist.bench.suite` builds:
+``{"machine": {...}, "sizes": {...}, "sections": {name: {"status", "elapsed_s", "rows" | ..., "error"}},
+"ratios": {...}, "total_s": ...}``. A section that failed has ``status == "error"`` and no figures;
+every function here shows that instead of failing itself.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from visfly_dist.bench.step import STAGES
+
+PLOT_FILES = {
+    "render": "render_fps_vs_resolution.png",
+    "scaling": "step_scaling.png",
+    "stages": "step_stages.png",
+    "physics": "physics_scaling.png",
+}
+
+
+def fmt(value: Any) -> str:
+    """A table cell: floats with 3 significant figures (thousands separated), the rest as text."""
+    if isinstance(value, bool) or value is None:
+        return "-" if value is None else ("yes" if value else "no")
+    if isinstance(value, float):
+        if math.isnan(value) or math.isinf(value):
+            return str(value)
+        if abs(value) >= 1000:
+            return f"{value:,.0f}"
+        if abs(value) >= 1 or value == 0:
+            return f"{value:.3g}" if abs(value) < 100 else f"{value:.0f}"
+        return f"{value:.3g}"
+    if isinstance(value, int):
+        return f"{value:,}" if abs(value) >= 10_000 else str(value)
+    if isinstance(value, Mapping):
+        return " ".join(f"{k}={fmt(v)}" for k, v in value.items())
+    return str(value)
+
+
+def columns_of(rows: Sequence[Mapping[str, Any]], skip: Iterable[str] = ()) -> list[str]:
+    """Keys of ``rows`` in order of first appearance, without ``skip``."""
+    skip = set(skip)
+    out: list[str] = []
+    for row in rows:
+        out.extend(k for k in row if k not in out and k not in skip)
+    return out
+
+
+def text_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None) -> str:
+    """Rows as an aligned plain-text table (missing cells show ``-``)."""
+    if not rows:
+        return "(no rows)"
+    columns = list(columns or columns_of(rows))
+    cells = [[fmt(row.get(c)) for c in columns] for row in rows]
+    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)),
+             "  ".join("-" * w for w in widths)]
+    lines += ["  ".join(v.rjust(w) for v, w in zip(r, widths)) for r in cells]
+    return "\n".join(lines)
+
+
+def markdown_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str] | None = None) -> str:
+    """Rows as a GitHub Markdown table."""
+    if not rows:
+        return "_no rows_"
+    columns = list(columns or columns_of(rows))
+    lines = ["| " + " | ".join(columns) + " |", "|" + "|".join("---" for _ in columns) + "|"]
+    lines += ["| " + " | ".join(fmt(row.get(c)).replace("|", "/") for c in columns) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def flat_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Rows with nested maps flattened one level (``stages.physics``) for tables."""
+    out = []
+    for row in rows:
+        flat: dict[str, Any] = {}
+        for k, v in row.items():
+            if isinstance(v, Mapping):
+                flat.update({f"{k}.{kk}": vv for kk, vv in v.items()})
+            else:
+                flat[k] = v
+        out.append(flat)
+    return out
+
+
+def write_json(result: Mapping[str, Any], path: str | os.PathLike) -> Path:
+    """Write the result as indented JSON (non-finite floats become null); return the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_finite(result), indent=2, sort_keys=False) + "\n")
+    return path
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, Mapping):
+        return {str(k): _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _section_rows(result: Mapping[str, Any], name: str) -> list[dict[str, Any]]:
+    section = result.get("sections", {}).get(name, {})
+    return list(section.get("rows", [])) if section.get("status") == "ok" else []
+
+
+# -- plots -----------------------------------------------------------------------------------------
+
+def write_plots(result: Mapping[str, Any], out_dir: str | os.PathLike) -> list[Path]:
+    """Draw every plot the result has data for into ``out_dir``; return the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for key, draw in (("render", _plot_render), ("scaling", _plot_scaling), ("stages", _plot_stages),
+                      ("physics", _plot_physics)):
+        path = out_dir / PLOT_FILES[key]
+        if draw(result, path):
+            written.append(path)
+    return written
+
+
+def _save(fig: Any, path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def _plot_render(result: Mapping[str, Any], path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in _section_rows(result, "render") if "res" in r and r.get("frames_per_s")]
+    peer = [r for r in result.get("sections", {}).get("peer", {}).get("depth", []) if r.get("frames_per_s")]
+    if not rows and not peer:
+        return False
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    series: dict[str, list[tuple[int, float]]] = {}
+    for r in rows:
+        label = f"{r.get('backend')} {r.get('kind')}" + (f" ({r['where']})" if r.get("where") else "")
+        series.setdefault(label, []).append((int(r["res"]), float(r["frames_per_s"])))
+    if peer:
+        series["pybullet TinyRenderer depth (peer)"] = [(int(r["res"]), float(r["frames_per_s"])) for r in peer]
+    for label, pts in sorted(series.items()):
+        pts.sort()
+        style = "k--o" if "peer" in label else "-o"
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=label)
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ticks = sorted({p[0] for pts in series.values() for p in pts})
+    ax.set_xticks(ticks, [f"{t}x{t}" for t in ticks])
+    ax.set_xlabel("resolution")
+    ax.set_ylabel("frames/s")
+    ax.set_title("Rendering: frames/s against resolution (garage-stones)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def _plot_scaling(result: Mapping[str, Any], path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in _section_rows(result, "scaling") if r.get("env_steps_per_s")]
+    if not rows:
+        return False
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for workers in sorted({r["workers"] for r in rows}):
+        pts = sorted((r["scenes"], r["env_steps_per_s"]) for r in rows if r["workers"] == workers)
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "-o", label=f"{workers} worker(s)")
+    ax.set_xscale("log", base=2)
+    ticks = sorted({r["scenes"] for r in rows})
+    ax.set_xticks(ticks, [str(t) for t in ticks])
+    ax.set_xlabel("scenes")
+    ax.set_ylabel("env-steps/s")
+    ax.set_title("VecEnv.step: env-steps/s against scenes and workers")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    return _save(fig, path)
+
+
+def _plot_stages(result: Mapping[str, Any], path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in _section_rows(result, "end_to_end") if r.get("stages")]
+    if not rows:
+        return False
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    labels = [f"{r['workers']} worker(s), shm {'on' if r.get('shm') else 'off'}\n{fmt(r.get('env_steps_per_s'))} env-steps/s"
+              for r in rows]
+    bottom = [0.0] * len(rows)
+    for stage in STAGES:
+        shares = [100.0 * float(r["stages"].get(stage, 0.0)) for r in rows]
+        ax.bar(labels, shares, bottom=bottom, label=stage)
+        bottom = [b + s for b, s in zip(bottom, shares)]
+    ax.tick_params(axis="x", labelsize=8)
+    ax.set_ylabel("share of VecEnv.step wall time (%)")
+    ax.set_title("Where a step's time goes")
+    ax.set_ylim(0, 100)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    return _save(fig, path)
+
+
+def _plot_physics(result: Mapping[str, Any], path: Path) -> bool:
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in _section_rows(result, "physics") if r.get("agent_steps_per_s")]
+    if not rows:
+        return False
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    series: dict[str, list[tuple[int, float]]] = {}
+    for r in rows:
+        label = f"{r.get('mode')}{' + grad' if r.get('grad') else ''}"
+        series.setdefault(label, []).append((int(r["agents"]), float(r["agent_steps_per_s"])))
+    for label, pts in sorted(series.items()):
+        pts.sort()
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "-o", label=label)
+    peer = result.get("sections", {}).get("peer", {}).get("physics")
+    if peer and peer.get("agent_steps_per_s"):
+        ax.plot([peer["drones"]], [peer["agent_steps_per_s"]], "k*", markersize=12, label="pybullet peer (240 Hz)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("agents")
+    ax.set_ylabel("agent-steps/s")
+    ax.set_title("Batched dynamics: agent-steps/s against agents")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+# -- text and Markdown -----------------------------------------------------------------------------
+
+def ratio_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The ratios ours/peer against their goals, as table rows."""
+    out = []
+    for name, r in result.get("ratios", {}).items():
+        out.append({"figure": name, "ours": r.get("ours"), "peer": r.get("peer"), "ratio": r.get("ratio"),
+                    "goal": r.get("goal_text", r.get("goal")), "met": r.get("met"), "note": r.get("note", "")})
+    return out
+
+
+def section_text(name: str, section: Mapping[str, Any]) -> str:
+    """One section as text: its table, or its error."""
+    if section.get("status") != "ok":
+        return f"[{name}] {section.get('status', 'missing').upper()}: {section.get('error', 'not run')}"
+    if name == "peer":
+        parts = []
+        if section.get("physics"):
+            parts.append(text_table([section["physics"]]))
+        if section.get("depth"):
+            parts.append(text_table(section["depth"]))
+        return "\n".join(parts)
+    return text_table(flat_rows(section.get("rows", [])))
+
+
+def text_report(result: Mapping[str, Any]) -> str:
+    """The whole run as plain text for stdout."""
+    lines = []
+    for name, section in result.get("sections", {}).items():
+        lines += [f"== {name} ({fmt(section.get('elapsed_s'))} s)", section_text(name, section), ""]
+    lines += ["== ours / peer (pybullet, gym-pybullet-drones style), same machine, same run",
+              text_table(ratio_rows(result)), "", f"total: {fmt(result.get('total_s'))} s"]
+    return "\n".join(lines)
+
+
+def markdown_report(result: Mapping[str, Any], md_path: str | os.PathLike, plots_dir: str | os.PathLike) -> str:
+    """BENCHMARKS.md: latest figures, machine, command, ratios against goals, plots."""
+    m = result.get("machine", {})
+    md_dir = Path(md_path).resolve().parent
+    lines = [
+        "# Benchmarks",
+        "",
+        "Generated by `visfly-dist bench all`; do not edit by hand (rerun the command below instead).",
+        "The peer is gym-pybullet-drones' way of simulating (pybullet `DIRECT`, 240 Hz, per-drone force "
+        "calls; TinyRenderer camera) on the same scene mesh, measured in the same run on the same machine.",
+        "",
+        "## Run",
+        "",
+        f"- command: `{m.get('command')}`",
+        f"- date: {m.get('date')} · commit: `{m.get('git_commit')}`",
+        f"- machine: {m.get('cpu_model')}, {m.get('cores')} cores, {m.get('platform')}",
+        f"- versions: python {m.get('python')}, torch {m.get('torch')}, numpy {m.get('numpy')}, "
+        f"embreex {m.get('embreex')}, pybullet {m.get('pybullet')}",
+        f"- preset: {result.get('preset')} · total time: {fmt(result.get('total_s'))} s",
+        f"- load average (1/5/15 min) at start {m.get('load_average_start')}, at end {result.get('load_average_end')}",
+    ]
+    if result.get("busy_note"):
+        lines.append(f"- **note:** {result['busy_note']}")
+    lines += ["", "## Goals", "", markdown_table(ratio_rows(result)), ""]
+    titles = {"physics": "Physics (batched dynamics)", "render": "Rendering and obstacle queries",
+              "end_to_end": "End to end: VecEnv.step", "scaling": "Scaling: scenes and workers",
+              "peer": "Peer: pybullet"}
+    for name, section in result.get("sections", {}).items():
+        lines += [f"## {titles.get(name, name)}", ""]
+        if section.get("status") != "ok":
+            lines += [f"**{section.get('status', 'missing')}:** `{section.get('error', 'not run')}`", ""]
+            continue
+        if name == "peer":
+            if section.get("physics"):
+                lines += [markdown_table([section["physics"]]), ""]
+            if section.get("depth"):
+                lines += [markdown_table(section["depth"]), ""]
+        else:
+            lines += [markdown_table(flat_rows(section.get("rows", []))), ""]
+        if section.get("note"):
+            lines += [section["note"], ""]
+    plots = [(key, Path(plots_dir) / f) for key, f in PLOT_FILES.items() if (Path(plots_dir) / f).exists()]
+    if plots:
+        lines += ["## Plots", ""]
+        for key, p in plots:
+            rel = os.path.relpath(p.resolve(), md_dir)
+            lines += [f"![{key}]({rel})", ""]
+    return "\n".join(lines)
+
+
+def write_markdown(result: Mapping[str, Any], md_path: str | os.PathLike, plots_dir: str | os.PathLike) -> Path:
+    path = Path(md_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(markdown_report(result, path, plots_dir))
+    return path

@@ -1,0 +1,266 @@
+"""``visfly-dist bench all``: every benchmark in one run, with the peer beside ours.
+
+Sections, in order (``--sections`` picks a subset):
+
+* ``physics``: batched dynamics, agent-steps/s at 100, 1,000 and 10,000 agents, eager and
+  ``torch.compile``, with and without autograd (:func:`visfly_dist.bench.physics.bench_physics`).
+* ``render``: each backend at 64x64 and 256x256 (depth, RGB, segmentation; 100 cameras,
+  garage-stones) and obstacle queries (:func:`visfly_dist.bench.render.bench_render`).
+* ``end_to_end``: ``VecEnv.step`` env-steps/s of the navigation task with 1 and 2 workers, shared
+  memory on and off, and where the time goes (:func:`visfly_dist.bench.step.bench_step`).
+* ``scaling``: env-steps/s against scenes (1, 2, 4, 8) and workers (1, 2).
+* ``peer``: gym-pybullet-drones-style pybullet physics at 100 drones and TinyRenderer depth
+  (:mod:`visfly_dist.bench.peer`).
+
+Then the ratios ours/peer against their goals. A section whose dependency is missing or which fails
+is recorded with its error and the run goes on: one broken part never hides the others' figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from visfly_dist.bench import report
+from visfly_dist.bench.common import Stopwatch, load_average, machine_info
+from visfly_dist.errors import ConfigError
+
+SECTIONS = ("physics", "render", "end_to_end", "scaling", "peer")
+GOALS = {"physics": 10.0, "depth": 5.0, "quick_s": 600.0}
+BUSY_LOAD = 0.5
+"""Load average per core, before the run starts, above which the machine counts as busy."""
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """How much work each section does (a preset: ``full``, ``quick`` or ``tiny``)."""
+
+    physics_agents: tuple[int, ...] = (100, 1_000, 10_000)
+    physics_modes: tuple[str, ...] = ("eager", "compiled")
+    physics_grads: tuple[bool, ...] = (False, True)
+    physics_steps: int = 200
+    render_res: tuple[int, ...] = (64, 256)
+    render_kinds: tuple[str, ...] = ("depth", "rgb", "segmentation")
+    render_cameras: int = 100
+    render_reps: int = 5
+    step_agents: int = 100
+    step_res: int = 64
+    step_workers: tuple[int, ...] = (1, 2)
+    step_shm: tuple[bool, ...] = (True, False)
+    step_steps: int = 200
+    scaling_scenes: tuple[int, ...] = (1, 2, 4, 8)
+    scaling_workers: tuple[int, ...] = (1, 2)
+    scaling_steps: int = 100
+    peer_drones: int = 100
+    peer_seconds: float = 5.0
+    peer_res: tuple[int, ...] = (64, 256)
+    peer_cameras: int = 100
+    peer_reps: int = 3
+
+
+PRESETS: dict[str, Sizes] = {
+    "full": Sizes(),
+    "quick": Sizes(physics_steps=30, render_reps=2, step_steps=30, scaling_steps=15, peer_seconds=2.0,
+                   peer_cameras=50, peer_reps=1),
+    "tiny": Sizes(physics_agents=(8,), physics_modes=("eager",), physics_grads=(False,), physics_steps=2,
+                  render_res=(16,), render_kinds=("depth",), render_cameras=4, render_reps=1,
+                  step_agents=4, step_res=16, step_workers=(1,), step_shm=(True,), step_steps=2,
+                  scaling_scenes=(1, 2), scaling_workers=(1,), scaling_steps=2,
+                  peer_drones=4, peer_seconds=0.05, peer_res=(16,), peer_cameras=4, peer_reps=1),
+}
+
+
+# -- sections --------------------------------------------------------------------------------------
+
+def section_physics(sizes: Sizes) -> dict[str, Any]:
+    from visfly_dist.bench.physics import bench_physics
+
+    rows = bench_physics(agents=list(sizes.physics_agents), modes=list(sizes.physics_modes),
+                         grads=list(sizes.physics_grads), device="cpu", steps=sizes.physics_steps)
+    return {"rows": rows}
+
+
+def section_render(sizes: Sizes) -> dict[str, Any]:
+    from visfly_dist.bench.render import bench_render
+
+    rows = bench_render(backends=None, res=list(sizes.render_res), kinds=list(sizes.render_kinds),
+                        cameras=sizes.render_cameras, reps=sizes.render_reps)
+    return {"rows": rows}
+
+
+def section_end_to_end(sizes: Sizes) -> dict[str, Any]:
+    from visfly_dist.bench.step import bench_step
+
+    rows = []
+    for shm in sizes.step_shm:
+        rows += bench_step(agents=sizes.step_agents, workers=list(sizes.step_workers), res=sizes.step_res,
+                           shm=shm, steps=sizes.step_steps)
+    return {"rows": rows}
+
+
+def section_scaling(sizes: Sizes) -> dict[str, Any]:
+    from visfly_dist.bench.step import bench_step
+
+    rows = []
+    for scenes in sizes.scaling_scenes:
+        rows += bench_step(agents=sizes.step_agents, workers=list(sizes.scaling_workers), res=sizes.step_res,
+                           scenes=scenes, steps=sizes.scaling_steps)
+    return {"rows": rows}
+
+
+def section_peer(sizes: Sizes) -> dict[str, Any]:
+    from visfly_dist.bench.peer import peer_depth, peer_physics
+    from visfly_dist.scenes import generate_scene
+
+    scene = generate_scene("garage-stones", seed=0)
+    physics = peer_physics(sizes.peer_drones, sizes.peer_seconds)
+    depth = [peer_depth(res, sizes.peer_cameras, scene, reps=sizes.peer_reps) for res in sizes.peer_res]
+    return {"physics": physics, "depth": depth}
+
+
+SECTION_FUNCS: dict[str, Callable[[Sizes], dict[str, Any]]] = {
+    "physics": section_physics,
+    "render": section_render,
+    "end_to_end": section_end_to_end,
+    "scaling": section_scaling,
+    "peer": section_peer,
+}
+
+
+def run_section(name: str, sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
+    """Run one section; a failure becomes ``{"status": "error", "error": ...}`` instead of an exception."""
+    watch = Stopwatch()
+    try:
+        out = SECTION_FUNCS[name](sizes)
+        out = {"status": "ok", **out}
+    except ModuleNotFoundError as exc:
+        out = {"status": "error", "error": f"missing dependency: {exc}", "traceback": traceback.format_exc()}
+    except Exception as exc:  # noqa: BLE001  (a broken section is recorded; the run goes on)
+        out = {"status": "error", "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+    out["elapsed_s"] = round(watch.elapsed, 2)
+    if out["status"] != "ok":
+        log(f"[bench all] !! section {name} FAILED after {out['elapsed_s']} s: {out['error']}")
+    return out
+
+
+# -- ratios ----------------------------------------------------------------------------------------
+
+def _best(rows: list[dict[str, Any]], key: str, keep: Callable[[dict[str, Any]], bool]) -> dict[str, Any] | None:
+    rows = [r for r in rows if keep(r) and isinstance(r.get(key), (int, float)) and r[key] > 0]
+    return max(rows, key=lambda r: r[key]) if rows else None
+
+
+def compute_ratios(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Ours/peer for physics (sim-seconds/s at 100 drones) and 64x64 depth (our fastest backend)."""
+    sections = result["sections"]
+    ok = {k: v for k, v in sections.items() if v.get("status") == "ok"}
+    peer = ok.get("peer", {})
+    out: dict[str, dict[str, Any]] = {}
+
+    peer_phys = peer.get("physics")
+    phys_rows = ok.get("physics", {}).get("rows", [])
+    at = peer_phys["drones"] if peer_phys else 100
+    for label, grad in (("physics sim-s/s", False), ("physics sim-s/s (with grad)", True)):
+        ours = _best(phys_rows, "sim_seconds_per_s", lambda r: r.get("agents") == at and bool(r.get("grad")) == grad)
+        if ours is None and not grad:
+            out[label] = _ratio(None, peer_phys and peer_phys["sim_seconds_per_s"], GOALS["physics"],
+                                f"needs the physics section at {at} agents and the peer")
+        elif ours is not None:
+            out[label] = _ratio(ours["sim_seconds_per_s"], peer_phys and peer_phys["sim_seconds_per_s"],
+                                GOALS["physics"] if not grad else None,
+                                f"{at} drones; ours: {ours.get('mode')}; peer: pybullet 240 Hz")
+
+    peer_depth = next((d for d in peer.get("depth", []) if d.get("res") == 64), None)
+    render_rows = ok.get("render", {}).get("rows", [])
+    ours = _best(render_rows, "frames_per_s", lambda r: r.get("kind") == "depth" and r.get("res") == 64)
+    note = (f"64x64 depth; ours: {ours.get('backend')} ({ours.get('where', '')}); peer: TinyRenderer"
+            if ours else "needs the render section at 64x64 depth and the peer")
+    out["depth 64x64 frames/s"] = _ratio(ours and ours["frames_per_s"], peer_depth and peer_depth["frames_per_s"],
+                                         GOALS["depth"], note)
+    return out
+
+
+def _ratio(ours: float | None, peer: float | None, goal: float | None, note: str) -> dict[str, Any]:
+    ratio = ours / peer if ours and peer else None
+    return {"ours": ours, "peer": peer, "ratio": ratio, "goal": goal, "goal_text": f">= {goal:g}x peer" if goal else "-",
+            "met": None if ratio is None or goal is None else ratio >= goal, "note": note}
+
+
+# -- the run ---------------------------------------------------------------------------------------
+
+def run_suite(sizes: Sizes, sections: tuple[str, ...] = SECTIONS, *, preset: str = "custom",
+              log: Callable[[str], None] = print, argv: list[str] | None = None) -> dict[str, Any]:
+    """Run the chosen sections and return the result dictionary (see :mod:`visfly_dist.bench.report`)."""
+    unknown = [s for s in sections if s not in SECTIONS]
+    if unknown:
+        raise ConfigError(f"unknown sections {unknown}; valid: {list(SECTIONS)}")
+    watch = Stopwatch()
+    result: dict[str, Any] = {"machine": machine_info(argv), "preset": preset, "sizes": dataclasses.asdict(sizes),
+                              "sections": {}}
+    for name in sections:
+        log(f"[bench all] {name} ... (elapsed {watch.elapsed:.0f} s)")
+        result["sections"][name] = run_section(name, sizes, log)
+        log(f"[bench all] {name} {result['sections'][name]['status']} in {result['sections'][name]['elapsed_s']} s")
+    result["ratios"] = compute_ratios(result)
+    result["total_s"] = round(watch.elapsed, 1)
+    result["load_average_end"] = load_average()
+    if preset == "quick":
+        result["ratios"]["--quick wall time (s)"] = {
+            "ours": result["total_s"], "peer": None, "ratio": None, "goal": GOALS["quick_s"],
+            "goal_text": f"<= {GOALS['quick_s']:g} s", "met": result["total_s"] <= GOALS["quick_s"],
+            "note": "the whole --quick run, all sections"}
+    result["busy_note"] = busy_note(result)
+    return result
+
+
+def busy_note(result: dict[str, Any]) -> str:
+    """A warning when the load average says other work shared the machine during the run."""
+    cores = result["machine"].get("cores") or 1
+    start = result["machine"].get("load_average_start")
+    end = result.get("load_average_end")
+    # Before the run, any load is someone else's; at the end, this run's own workers (up to two
+    # processes and the driver) account for about cores + 1.
+    busy = (start and start[0] > BUSY_LOAD * cores) or (end and end[1] > cores + 1)
+    if not busy:
+        return ""
+    return (f"the machine was busy (load average {start} at the start, {end} at the end, on {cores} cores; other "
+            "engineers' tests ran concurrently): absolute figures are noisy, ratios (same run) less so")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--quick", action="store_true", help="fewer steps and repetitions (within 10 minutes)")
+    parser.add_argument("--tiny", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS), metavar="SECTION",
+                        help=f"run only these sections (of: {', '.join(SECTIONS)})")
+    parser.add_argument("--json", required=True, metavar="FILE", help="write the results here")
+    parser.add_argument("--plots", metavar="DIR", help="write PNG plots into this folder")
+    parser.add_argument("--md", metavar="FILE", help="write a Markdown report (e.g. BENCHMARKS.md)")
+
+
+def run(args: argparse.Namespace) -> int:
+    preset = "tiny" if args.tiny else "quick" if args.quick else "full"
+    sections = tuple(s for s in SECTIONS if s in args.sections)
+
+    def log(line: str) -> None:
+        print(line, flush=True)
+
+    result = run_suite(PRESETS[preset], sections, preset=preset, log=log)
+    plots = report.write_plots(result, args.plots) if args.plots else []
+    result["plots"] = [str(p) for p in plots]
+    report.write_json(result, args.json)
+    print()
+    print(report.text_report(result))
+    if result["busy_note"]:
+        print(f"note: {result['busy_note']}")
+    if args.md:
+        report.write_markdown(result, args.md, args.plots or ".")
+    print(f"wrote {args.json}" + (f", {len(plots)} plots in {args.plots}" if args.plots else "")
+          + (f", {args.md}" if args.md else ""), flush=True)
+    failed = [n for n, s in result["sections"].items() if s["status"] != "ok"]
+    if failed:
+        print(f"sections that failed: {', '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0

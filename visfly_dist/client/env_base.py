@@ -1,0 +1,410 @@
+"""``DroneEnvBase``: a batch of quadrotors in distributed scenes, as a Stable-Baselines3 ``VecEnv``.
+
+The env owns the batched dynamics state (torch, differentiable) and drives the aggregator, which
+renders and queries the scenes on the workers. A task subclasses it and writes only its hooks:
+
+- ``get_observation() -> dict[str, Tensor]`` (one entry per ``observation_space_dict`` key),
+- ``get_reward() -> Tensor (N,)``, ``get_success() -> bool Tensor (N,)``,
+- optionally ``get_failure()`` (default: collision, inside an obstacle or out of bounds),
+  ``observation_space_dict()``, ``spawn_distribution()`` / ``spawn_positions(idx)``,
+  ``reset_agents_hook(idx)``.
+
+One step: actions -> ``Quadrotor.step`` -> poses -> ``Aggregator.observe`` -> images to torch (+
+noise) -> ``get_success``, ``get_failure``, then ``get_reward`` (which may read ``self.success`` and
+``self.failure``), then ``get_observation``. ``terminated = success | failure``; ``truncated`` =
+time limit, lost agents (no worker answered) and agents whose scene was swapped. Done agents are
+reset by masked selection and their fresh observation replaces the terminal one, which goes into
+``info["terminal_observation"]`` (SB3 semantics; the Gymnasium view maps it onto SAME_STEP).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnv
+
+from visfly_dist.aggregator import Aggregator
+from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
+from visfly_dist.client.frame import SensorFrame
+from visfly_dist.client.noise import SensorNoise
+from visfly_dist.dynamics import QuadState, Quadrotor, load_airframe
+from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.cameras import CameraSpec
+
+PROBE_CAMERA = CameraSpec(name="_probe", kind="depth", width=1, height=1)
+"""Handed to the aggregator when a task has no camera (it needs one); its image is dropped."""
+
+STATE_DIM = 13
+"""``state_vector``: position (relative to an origin), velocity, quaternion wxyz, body rates."""
+
+
+@dataclass(frozen=True)
+class Spawn:
+    """Where agents start: ``uniform`` over the box ``[a, b]`` or ``normal`` (mean ``a``, std ``b``),
+    at least ``clearance`` metres from any obstacle."""
+
+    distribution: str = "uniform"
+    a: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    b: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    clearance: float = 0.5
+
+    @classmethod
+    def around(cls, center: Sequence[float], half_width: Sequence[float], clearance: float = 0.5) -> "Spawn":
+        """Uniform in ``center ± half_width``."""
+        c, h = np.asarray(center, float), np.asarray(half_width, float)
+        return cls("uniform", tuple(c - h), tuple(c + h), clearance)
+
+
+@dataclass
+class StepResult:
+    """What ``step_tensor`` returns (unpacks like a Gymnasium step).
+
+    Attributes:
+        observation: key -> ``(N, ...)`` tensors after auto-reset.
+        reward: ``(N,)``, carries gradients when ``requires_grad``.
+        terminated: ``(N,)`` bool, success or failure.
+        truncated: ``(N,)`` bool, time limit, lost agent, or scene swap (never also terminated).
+        info: ``terminal_observation`` (observation before the reset, all rows), ``success``,
+            ``collision``, ``out_of_bounds``, ``lost``, ``swapped`` (``(N,)`` bool), and
+            ``episode_return`` / ``episode_length`` (``(N,)``, meaningful where done).
+    """
+
+    observation: dict[str, torch.Tensor]
+    reward: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    info: dict[str, Any]
+
+    def __iter__(self):
+        return iter((self.observation, self.reward, self.terminated, self.truncated, self.info))
+
+
+class DroneEnvBase(VecEnv):
+    """Base class of every task: owns dynamics, aggregator, noise, resets and the SB3 interface.
+
+    Args:
+        config: the settings (a task's own ``config_class``); validated before anything starts.
+
+    Attributes available to the hooks:
+        state: :class:`QuadState` of all agents.
+        frame: :class:`SensorFrame` of the last observation (images, collision, nearest, ...).
+        bounds: ``(N, 2, 3)`` flight box of each agent's scene.
+        actions: ``(N, 4)`` last actions in ``[-1, 1]``.
+        episode_step: ``(N,)`` steps taken in the current episode.
+        success, failure: ``(N,)`` bool of the current step (valid inside ``get_reward``).
+        generator: the env's ``torch.Generator`` (noise, task randomness).
+    """
+
+    config_class: type[EnvConfig] = EnvConfig
+    render_mode = None
+
+    def __init__(self, config: EnvConfig | None = None) -> None:
+        config = self.config_class() if config is None else config
+        config.validate()
+        self.config = config
+        self.device = torch.device(config.device)
+        self.cameras: tuple[CameraSpec, ...] = tuple(config.cameras)
+        n = config.num_envs
+        self.quad = Quadrotor(config.dynamics_config(), load_airframe(config.airframe), num_agents=n, device=self.device)
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(config.seed)
+        self._image_noise = {c.name: SensorNoise(config.noise.get(c.name, ()), c.kind, c.far) for c in self.cameras}
+        self._state_noise = SensorNoise(config.noise.get(STATE_NOISE_KEY, ()), STATE_NOISE_KEY)
+        self._closed = True
+        super().__init__(n, spaces.Dict(self.observation_space_dict()), spaces.Box(-1.0, 1.0, (4,), np.float32))
+        self.aggregator = Aggregator(pool=config.pool, scenes=config.scene_set(), cameras=list(self.cameras or (PROBE_CAMERA,)),
+                                     drone_radius=config.drone_radius, multi_agent=config.multi_agent,
+                                     search_radius=config.search_radius, seed=config.seed)
+        self._closed = False
+        try:
+            self.aggregator.start()
+        except BaseException:
+            self.close()
+            raise
+        self.agent_scene = torch.as_tensor(np.asarray(self.aggregator.agent_scene), device=self.device)
+        self.bounds = self._agent_bounds()
+        zeros = torch.zeros(n, device=self.device)
+        self.episode_step = zeros.long()
+        self.episode_return = zeros.clone()
+        self.success = zeros.bool()
+        self.failure = zeros.bool()
+        self.actions = torch.zeros(n, 4, device=self.device)
+        self.state: QuadState = self.quad.initial_state(torch.zeros(n, 3, device=self.device))
+        self.frame: SensorFrame | None = None
+        self._pending_actions: torch.Tensor | None = None
+        self._t0 = time.time()
+
+    # ----- task hooks ---------------------------------------------------------------------------
+
+    def get_observation(self) -> dict[str, torch.Tensor]:
+        """Observation entries, ``(N, ...)`` each, keys as in ``observation_space_dict``."""
+        raise NotImplementedError
+
+    def get_reward(self) -> torch.Tensor:
+        """Reward of this step, ``(N,)`` float."""
+        raise NotImplementedError
+
+    def get_success(self) -> torch.Tensor:
+        """``(N,)`` bool: the agent reached its goal this step (terminates the episode)."""
+        raise NotImplementedError
+
+    def get_failure(self) -> torch.Tensor:
+        """``(N,)`` bool: the episode failed (default: collision, inside an obstacle, out of bounds)."""
+        return self.frame.collision | self.frame.inside | self.out_of_bounds()
+
+    def observation_space_dict(self) -> dict[str, spaces.Space]:
+        """Observation spaces: ``state`` (13,) and one image entry per camera; tasks extend it."""
+        out: dict[str, spaces.Space] = {"state": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)}
+        for cam in self.cameras:
+            out[cam.name] = camera_space(cam)
+        return out
+
+    def spawn_distribution(self) -> Spawn:
+        """Where agents start (the default: 1 m above the origin)."""
+        return Spawn()
+
+    def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
+        """Start positions ``(k, 3)`` of agents ``idx``, sampled clear of obstacles by the workers."""
+        spawn = self.spawn_distribution()
+        pos = self.aggregator.sample_spawn(idx.cpu().numpy(), spawn.distribution, spawn.a, spawn.b, spawn.clearance)
+        return torch.as_tensor(np.asarray(pos, dtype=np.float32), device=self.device)
+
+    def reset_agents_hook(self, idx: torch.Tensor) -> None:
+        """Called after agents ``idx`` got their new state, before their first observation."""
+
+    # ----- helpers for tasks --------------------------------------------------------------------
+
+    def state_vector(self, origin: torch.Tensor | None = None) -> torch.Tensor:
+        """``(N, 13)``: position minus ``origin`` (m), velocity (m/s), quaternion wxyz, body rates (rad/s)."""
+        s = self.state
+        pos = s.pos if origin is None else s.pos - origin
+        return torch.cat((pos, s.vel, s.quat, s.omega), dim=1)
+
+    def out_of_bounds(self) -> torch.Tensor:
+        """``(N,)`` bool: the agent left its scene's flight box."""
+        pos = self.state.pos.detach()
+        return ((pos < self.bounds[:, 0]) | (pos > self.bounds[:, 1])).any(dim=1)
+
+    def scene_metadata(self, agent: int) -> dict[str, Any]:
+        """Metadata of the scene agent ``agent`` flies in (goal regions and the like)."""
+        return self.aggregator.scene_metadata(int(self.agent_scene[agent]))
+
+    # ----- core step ----------------------------------------------------------------------------
+
+    def step_tensor(self, actions: torch.Tensor | np.ndarray) -> StepResult:
+        """Advance every agent one control step, keeping torch tensors (and gradients).
+
+        Args:
+            actions: ``(N, 4)`` in ``[-1, 1]``; values outside are clipped.
+        """
+        self._check_open()
+        if self.frame is None:
+            self.reset()
+        with torch.set_grad_enabled(self.config.requires_grad):
+            return self._step(actions)
+
+    def _step(self, actions: torch.Tensor | np.ndarray) -> StepResult:
+        actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        if actions.shape != (self.num_envs, 4):
+            raise ConfigError(f"actions of shape {tuple(actions.shape)} must be ({self.num_envs}, 4)")
+        self.actions = actions.clamp(-1.0, 1.0)
+        self.state = self.quad.step(self.state, self.actions)
+        self.frame = self._observe(None)
+        self.episode_step = self.episode_step + 1
+        lost = self.frame.lost
+        self.success = self.get_success() & ~lost
+        self.failure = self.get_failure() & ~lost & ~self.success
+        reward = self.get_reward()
+        self.episode_return = self.episode_return + reward.detach()
+        observation = self._observation()
+
+        terminated = self.success | self.failure
+        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
+        terminated, truncated = self.expand_resets(terminated, truncated)
+        info = {"terminal_observation": observation, "success": self.success, "lost": lost,
+                "collision": self.frame.collision, "out_of_bounds": self.out_of_bounds(),
+                "swapped": torch.zeros_like(lost), "episode_return": self.episode_return,
+                "episode_length": self.episode_step}
+        done = terminated | truncated
+        if bool(done.any()):
+            swapped = self._note_resets(done) & ~done
+            truncated = truncated | swapped
+            info["swapped"] = swapped
+            observation = self._reset_agents(done | swapped, observation)
+        return StepResult(observation, reward, terminated, truncated, info)
+
+    def expand_resets(self, terminated: torch.Tensor, truncated: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Hook: end further episodes because of these (teams end together in multi-agent tasks)."""
+        return terminated, truncated
+
+    def _observe(self, idx: torch.Tensor | None) -> SensorFrame:
+        poses = self.state.pose().detach().cpu().numpy().astype(np.float64)
+        agents = None if idx is None else idx.cpu().numpy()
+        obs = self.aggregator.observe(poses, agents=agents)
+        return SensorFrame.from_observation(obs, self.device, self._image_noise, self.generator,
+                                            cameras=[c.name for c in self.cameras])
+
+    def _observation(self) -> dict[str, torch.Tensor]:
+        obs = self.get_observation()
+        if self._state_noise and "state" in obs:
+            obs = {**obs, "state": self._state_noise(obs["state"], self.generator)}
+        return obs
+
+    def _note_resets(self, done: torch.Tensor) -> torch.Tensor:
+        """Tell the aggregator about finished episodes; the mask of agents whose scene was swapped."""
+        swapped = np.asarray(self.aggregator.note_resets(done.nonzero().squeeze(1).cpu().numpy()), dtype=bool)
+        swapped_t = torch.as_tensor(swapped, device=self.device)
+        if swapped.any():
+            self.bounds = self._agent_bounds()
+        return swapped_t
+
+    def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
+        """Reset the agents in ``mask``; return ``observation`` with their rows replaced by fresh ones."""
+        idx = mask.nonzero().squeeze(1)
+        pos = self.state.pos.detach().clone()
+        pos[idx] = self.spawn_positions(idx)
+        fresh = self.quad.initial_state(pos)
+        self.state = QuadState.where(mask, fresh, self.state)
+        self.episode_step = torch.where(mask, 0, self.episode_step)
+        self.episode_return = torch.where(mask, 0.0, self.episode_return)
+        self.reset_agents_hook(idx)
+        rows = self._observe(idx)
+        self.frame = rows if observation is None else self.frame.scatter(idx, rows)
+        fresh_obs = self._observation()
+        if observation is None:
+            return fresh_obs
+        m = {k: mask.reshape((-1,) + (1,) * (v.dim() - 1)) for k, v in fresh_obs.items()}
+        return {k: torch.where(m[k], v, observation[k]) for k, v in fresh_obs.items()}
+
+    def _agent_bounds(self) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(self.aggregator.agent_bounds(), dtype=np.float32), device=self.device)
+
+    # ----- SB3 VecEnv ---------------------------------------------------------------------------
+
+    def reset(self) -> dict[str, np.ndarray]:
+        """Reset every agent (seeded by the last ``seed()`` call, if any); numpy observation."""
+        self._check_open()
+        if self._seeds[0] is not None:
+            self._reseed(int(self._seeds[0]))
+        self._reset_seeds()
+        self._reset_options()
+        with torch.set_grad_enabled(self.config.requires_grad):
+            self.state = self.state.detach()
+            obs = self._reset_agents(torch.ones(self.num_envs, dtype=torch.bool, device=self.device), None)
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return self.to_numpy(obs)
+
+    def _reseed(self, seed: int) -> None:
+        self.generator.manual_seed(seed)
+        self.aggregator.reseed(seed)
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._pending_actions = torch.as_tensor(np.asarray(actions), dtype=torch.float32, device=self.device)
+
+    def step_wait(self) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        assert self._pending_actions is not None, "step_wait() without step_async()"
+        actions, self._pending_actions = self._pending_actions, None
+        obs, reward, terminated, truncated, info = self.step_tensor(actions)
+        return (self.to_numpy(obs), reward.detach().cpu().numpy().astype(np.float32),
+                (terminated | truncated).cpu().numpy(), self._sb3_infos(terminated, truncated, info))
+
+    def _sb3_infos(self, terminated: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> list[dict[str, Any]]:
+        flags = {k: info[k].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
+        done = (terminated | truncated).cpu().numpy()
+        trunc = truncated.cpu().numpy()
+        infos: list[dict[str, Any]] = [
+            {"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
+             "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(trunc[i])}
+            for i in range(self.num_envs)]
+        if done.any():
+            terminal = self.to_numpy(info["terminal_observation"])
+            ret = info["episode_return"].cpu().numpy()
+            length = info["episode_length"].cpu().numpy()
+            elapsed = round(time.time() - self._t0, 6)
+            for i in np.flatnonzero(done):
+                infos[i]["terminal_observation"] = {k: v[i] for k, v in terminal.items()}
+                infos[i]["episode"] = {"r": float(ret[i]), "l": int(length[i]), "t": elapsed}
+                infos[i]["lost"] = bool(flags["lost"][i])
+                infos[i]["swapped"] = bool(flags["swapped"][i])
+        return infos
+
+    def to_numpy(self, obs: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+        """Observation tensors as numpy arrays of the observation space's dtypes."""
+        return {k: obs[k].detach().cpu().numpy().astype(space.dtype, copy=False)
+                for k, space in self.observation_space.spaces.items()}
+
+    def detach(self) -> None:
+        """Cut the autograd graph (truncated BPTT): the state keeps its values, loses its history."""
+        self.state = self.state.detach()
+        self.actions = self.actions.detach()
+
+    def close(self) -> None:
+        """Stop the aggregator and its workers; safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+        self.aggregator.close()
+
+    def __enter__(self) -> "DroneEnvBase":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ConfigError("this env is closed; build a new one (make_env) to keep going")
+
+    def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
+        """The attribute of this (single-process) env, once per index."""
+        return [getattr(self, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
+        """Set an attribute; every agent shares this object, so ``indices`` cannot select some."""
+        if len(list(self._get_indices(indices))) not in (0, self.num_envs):
+            raise ConfigError(f"set_attr({attr_name!r}) applies to all {self.num_envs} agents at once; pass indices=None")
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
+        """Call a method of this env once; its result is repeated per index."""
+        result = getattr(self, method_name)(*method_args, **method_kwargs)
+        return [result for _ in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type, indices: Any = None) -> list[bool]:
+        """Agents are not Gymnasium envs, so none is wrapped."""
+        return [False for _ in self._get_indices(indices)]
+
+    def _get_indices(self, indices: Any) -> Iterable[int]:
+        if indices is None:
+            return range(self.num_envs)
+        if isinstance(indices, (int, np.integer)):
+            return [int(indices)]
+        return [int(i) for i in indices]
+
+    # ----- other views ---------------------------------------------------------------------------
+
+    def as_gymnasium(self):
+        """This env as a ``gymnasium.vector.VectorEnv`` (SAME_STEP autoreset); shares this env."""
+        from visfly_dist.client.gym_view import GymnasiumVectorView
+
+        return GymnasiumVectorView(self)
+
+    def as_gymnasium_env(self):
+        """A single-agent ``gymnasium.Env`` over this env (needs ``num_envs == 1``), e.g. for ``check_env``."""
+        from visfly_dist.client.gym_view import SingleAgentView
+
+        return SingleAgentView(self)
+
+
+def camera_space(cam: CameraSpec) -> spaces.Box:
+    """The observation space of one camera: depth float32 [0, far], RGB uint8, segmentation uint16."""
+    if cam.kind == "depth":
+        return spaces.Box(0.0, float(cam.far), cam.shape, np.float32)
+    if cam.kind == "rgb":
+        return spaces.Box(0, 255, cam.shape, np.uint8)
+    return spaces.Box(0, np.iinfo(np.uint16).max, cam.shape, np.uint16)

@@ -1,0 +1,80 @@
+"""What the workers saw, as torch tensors: images (with sensor noise) and obstacle queries.
+
+The aggregator deals in numpy; this module is where its ``Observation`` crosses into torch, noise
+is applied (batched, seeded) and the fresh rows of reset agents are merged in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from visfly_dist.client.noise import SensorNoise
+
+
+@dataclass
+class SensorFrame:
+    """Per-agent sensor readings of one step.
+
+    Attributes:
+        images: camera name -> ``(N, C, H, W)``: depth float32 metres, RGB uint8, segmentation int32.
+        collision: ``(N,)`` bool, the drone's sphere touches an obstacle.
+        inside: ``(N,)`` bool, the drone is inside a closed obstacle.
+        nearest: ``(N, 3)`` world point of the nearest obstacle, metres.
+        distance: ``(N,)`` distance to that point (capped at the search radius), metres.
+        lost: ``(N,)`` bool, no worker answered for this agent (its readings are placeholders).
+    """
+
+    images: dict[str, torch.Tensor]
+    collision: torch.Tensor
+    inside: torch.Tensor
+    nearest: torch.Tensor
+    distance: torch.Tensor
+    lost: torch.Tensor
+
+    @classmethod
+    def from_observation(cls, obs: Any, device: torch.device, noise: Mapping[str, SensorNoise],
+                         generator: torch.Generator, cameras: Sequence[str]) -> "SensorFrame":
+        """Convert an aggregator ``Observation`` (numpy) and apply each camera's noise.
+
+        Only the images of ``cameras`` are kept (in that order).
+        """
+        images = {}
+        for name in cameras:
+            image = _image_tensor(np.asarray(obs.images[name]), device)
+            model = noise.get(name)
+            images[name] = model(image, generator) if model else image
+        return cls(
+            images=images,
+            collision=torch.as_tensor(np.asarray(obs.collision, dtype=bool), device=device),
+            inside=torch.as_tensor(np.asarray(obs.inside, dtype=bool), device=device),
+            nearest=torch.as_tensor(np.asarray(obs.nearest, dtype=np.float32), device=device),
+            distance=torch.as_tensor(np.asarray(obs.distance, dtype=np.float32), device=device),
+            lost=torch.as_tensor(np.asarray(obs.lost, dtype=bool), device=device),
+        )
+
+    def scatter(self, index: torch.Tensor, rows: "SensorFrame") -> "SensorFrame":
+        """A frame whose rows ``index`` come from ``rows`` (which holds exactly those rows)."""
+
+        def put(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+            out = full.clone()
+            out[index] = part
+            return out
+
+        return SensorFrame(
+            images={k: put(v, rows.images[k]) for k, v in self.images.items()},
+            collision=put(self.collision, rows.collision),
+            inside=put(self.inside, rows.inside),
+            nearest=put(self.nearest, rows.nearest),
+            distance=put(self.distance, rows.distance),
+            lost=put(self.lost, rows.lost),
+        )
+
+
+def _image_tensor(array: np.ndarray, device: torch.device) -> torch.Tensor:
+    if array.dtype == np.uint16:  # torch's uint16 supports few ops; ids fit in int32
+        array = array.astype(np.int32)
+    return torch.as_tensor(np.ascontiguousarray(array), device=device)

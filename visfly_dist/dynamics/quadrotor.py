@@ -1,0 +1,171 @@
+"""``Quadrotor``: a batch of N quadrotors advanced by a pure ``step(state, action) -> state``."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from visfly_dist.dynamics.airframe import Airframe, load_airframe
+from visfly_dist.dynamics.config import DynamicsConfig
+from visfly_dist.dynamics.controllers import make_controller
+from visfly_dist.dynamics.model import OMEGA, QUAT, ROTOR, RigidBodyModel, euler_step, rk4_step
+from visfly_dist.dynamics.state import QuadState
+from visfly_dist.errors import ConfigError
+
+Tensors = tuple[torch.Tensor, ...]
+
+
+class Quadrotor:
+    """N quadrotors of one airframe under one controller, on one device and dtype.
+
+    One ``step`` is one control step of ``config.ctrl_dt``: the (possibly delayed) action becomes a
+    set point, then ``config.substeps`` physics substeps each run the controller's inner loop and
+    integrate (RK4 or Euler) with the rotor command held over the substep.
+
+    Ground: contact with the plane ``z = 0`` is reported in ``QuadState.ground_contact``. With
+    ``config.ground`` a simple inelastic reaction acts after each substep: an agent below the
+    plane is put back on it and its downward velocity is removed (no friction, no bounce, no
+    torque), so a drone resting on the floor does not sink.
+
+    Gradients flow from the output state to actions, the input state and any airframe tensors
+    that require grad; nothing is modified in place.
+
+    Args:
+        config: simulation and controller settings.
+        airframe: an ``Airframe`` or the name/path for ``load_airframe`` (default ``"visfly"``).
+        num_agents: N.
+        device: torch device.
+        dtype: ``torch.float32`` (default) or ``torch.float64``.
+
+    Raises:
+        ConfigError: an invalid ``num_agents``, ``dtype``, airframe or a wind of the wrong shape.
+    """
+
+    def __init__(self, config: DynamicsConfig, airframe: Airframe | str = "visfly", num_agents: int = 1,
+                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+        if not isinstance(config, DynamicsConfig):
+            raise ConfigError(f"config must be a DynamicsConfig, got {type(config).__name__}")
+        if not isinstance(num_agents, int) or num_agents < 1:
+            raise ConfigError(f"num_agents={num_agents!r} must be an int >= 1")
+        if dtype not in (torch.float32, torch.float64):
+            raise ConfigError(f"dtype={dtype} must be torch.float32 or torch.float64")
+        self.airframe = load_airframe(airframe) if isinstance(airframe, str) else airframe
+        if not isinstance(self.airframe, Airframe):
+            raise ConfigError(f"airframe must be an Airframe or a name/path, got {type(airframe).__name__}")
+        wind = None
+        if config.wind is not None:
+            wind = torch.as_tensor(config.wind)
+            if wind.dim() == 2 and wind.shape[0] != num_agents:
+                raise ConfigError(f"wind of shape {tuple(wind.shape)} must be (3,) or ({num_agents}, 3) "
+                                  f"for num_agents={num_agents}")
+        self.config = config
+        self.num_agents = num_agents
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.model = RigidBodyModel(self.airframe, config.motor_lag, wind, self.device, dtype)
+        self.controller = make_controller(config.controller, self.model, self.airframe,
+                                          config.position_origin)
+        self._integrate = rk4_step if config.integrator == "rk4" else euler_step
+        self._advance: Callable[..., Tensors] = self._advance_eager
+        if config.compile:
+            self._advance = torch.compile(self._advance_eager, fullgraph=True, dynamic=False)
+
+    # --- states and actions -------------------------------------------------------------------
+
+    def hover_action(self) -> torch.Tensor:
+        """(4,) the action that holds a drone hovering in place (PS: at ``position_origin``)."""
+        return torch.tensor(self.controller.hover_action(), dtype=self.dtype, device=self.device)
+
+    def hover_rotor_speed(self) -> float:
+        """Rotor speed, rad/s, at which four rotors carry the airframe's weight."""
+        thrust = torch.as_tensor(float(self.model.mass) * 9.81 / 4, dtype=torch.float64)
+        a, b, c = (float(x) for x in self.airframe.thrust_coeffs)
+        return float(((thrust - c) / a + (b / (2 * a)) ** 2).sqrt() - b / (2 * a))
+
+    def initial_state(self, pos: torch.Tensor | None = None, vel: torch.Tensor | None = None,
+                      quat: torch.Tensor | None = None, omega: torch.Tensor | None = None,
+                      rotor: torch.Tensor | None = None) -> QuadState:
+        """A state of N agents; components left None are: at the origin, at rest, level, with
+        rotors at hover speed. The action queue holds the hover action (PS: the action that holds
+        each agent's position)."""
+        n, kw = self.num_agents, dict(dtype=self.dtype, device=self.device)
+        pos = self._component("pos", pos, torch.zeros(n, 3, **kw))
+        vel = self._component("vel", vel, torch.zeros(n, 3, **kw))
+        quat = self._component("quat", quat, torch.tensor([[1.0, 0.0, 0.0, 0.0]], **kw).expand(n, 4))
+        omega = self._component("omega", omega, torch.zeros(n, 3, **kw))
+        rotor = self._component("rotor", rotor, torch.full((n, 4), self.hover_rotor_speed(), **kw))
+        hold = self.hover_action().expand(n, 4)
+        if self.config.controller == "ps":
+            offset = (pos.detach() - self.controller.origin.T) / 10.0
+            hold = torch.cat((offset.clamp(-1, 1), hold[:, 3:]), dim=1)
+        queue = hold[:, None].expand(n, self.config.delay_steps, 4).contiguous()
+        return QuadState(pos=pos, vel=vel, quat=quat / quat.norm(dim=1, keepdim=True), omega=omega,
+                         rotor=rotor, ground_contact=pos[:, 2] <= 0, action_queue=queue)
+
+    def _component(self, name: str, value: torch.Tensor | None, default: torch.Tensor) -> torch.Tensor:
+        if value is None:
+            return default
+        value = torch.as_tensor(value, dtype=self.dtype, device=self.device)
+        if value.shape != default.shape:
+            raise ConfigError(f"{name} has shape {tuple(value.shape)}; expected {tuple(default.shape)}")
+        return value
+
+    # --- the step -----------------------------------------------------------------------------
+
+    def step(self, state: QuadState, action: torch.Tensor) -> QuadState:
+        """Advance every agent by one control step; pure (the input state is untouched).
+
+        Args:
+            state: current state of the N agents.
+            action: (N, 4) in [-1, 1] (values outside are clamped); see ``controllers``.
+
+        Raises:
+            ConfigError: wrong action shape or non-finite actions (with ``config.check_actions``).
+        """
+        if self.config.check_actions:
+            self._check_action(action)
+        queue = state.action_queue
+        if queue.shape[1] > 0:
+            action, queue = queue[:, 0], torch.cat((queue[:, 1:], action[:, None]), dim=1)
+        pos, vel, quat, omega, rotor, contact = self._advance(
+            state.pos, state.vel, state.quat, state.omega, state.rotor, action)
+        return QuadState(pos=pos, vel=vel, quat=quat, omega=omega, rotor=rotor,
+                         ground_contact=contact, action_queue=queue)
+
+    def _check_action(self, action: torch.Tensor) -> None:
+        expected = (self.num_agents, 4)
+        if not isinstance(action, torch.Tensor) or tuple(action.shape) != expected:
+            shape = tuple(action.shape) if hasattr(action, "shape") else type(action).__name__
+            raise ConfigError(f"action of shape {shape} must be a tensor of shape {expected} "
+                              f"(num_agents, 4) in [-1, 1]")
+        if not bool(torch.isfinite(action).all()):
+            bad = (~torch.isfinite(action)).any(dim=1).nonzero().flatten()[:8].tolist()
+            raise ConfigError(f"action has NaN or infinite entries (agents {bad}...); actions must be "
+                              "finite values in [-1, 1]")
+
+    def _advance_eager(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
+                       rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
+        """The control step on plain tensors (compiled as a whole with ``config.compile``)."""
+        s = torch.cat((pos, vel, quat, omega, rotor), dim=1).T.contiguous()
+        setpoint = self.controller.prepare(action.to(self.dtype).clamp(-1.0, 1.0).T)
+        h = self.config.sim_dt
+        contact = torch.zeros(s.shape[1], dtype=torch.bool, device=s.device)
+        for _ in range(self.config.substeps):
+            rotor_cmd = self.controller.rotor_command(s, setpoint)
+            if not self.config.motor_lag:
+                s = torch.cat((s[:ROTOR.start], rotor_cmd))
+            s = self._integrate(self.model, s, rotor_cmd, h)
+            contact = contact | (s[2] <= 0)
+            if self.config.ground:
+                s = _ground_reaction(s)
+        quat = s[QUAT]
+        s = torch.cat((s[:QUAT.start], quat / quat.norm(dim=0, keepdim=True), s[OMEGA.start:])).T.contiguous()
+        return s[:, 0:3], s[:, 3:6], s[:, 6:10], s[:, 10:13], s[:, 13:17], contact
+
+
+def _ground_reaction(s: torch.Tensor) -> torch.Tensor:
+    """Put agents below ``z = 0`` back on the plane and remove their downward velocity."""
+    z, vz = s[2:3], s[5:6]
+    below = z < 0
+    return torch.cat((s[:2], z.clamp_min(0.0), s[3:5], torch.where(below, vz.clamp_min(0.0), vz), s[6:]))

@@ -1,0 +1,74 @@
+"""Camera geometry shared by the renderers: quaternions, mounts, pixel rays.
+
+Frames (DESIGN.md): world z-up; body FLU; the camera frame of a mount is the body frame turned by the
+mount rotation, so with the identity mount the optical axis is body +x, image "up" is body +z and
+image "right" is body -y. A pixel ``(row i, column j)`` is sampled at its centre
+``(j + 0.5, i + 0.5)``, row 0 at the top.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from visfly_dist.protocol.cameras import CameraSpec
+
+CAMERA_TO_GL = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+"""Columns: the OpenGL camera axes (x right, y up, z backwards) in our camera frame."""
+
+
+def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
+    """Rotation matrices of unit quaternions.
+
+    Args:
+        quat: ``(..., 4)`` quaternions ``wxyz`` (normalised here).
+
+    Returns:
+        ``(..., 3, 3)`` float64 matrices that rotate vectors from the local to the parent frame.
+    """
+    q = np.asarray(quat, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+    ], axis=-2)
+
+
+def camera_world_poses(poses: np.ndarray, camera: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
+    """World positions and orientations of one camera mounted on every drone.
+
+    Args:
+        poses: ``(n, 7)`` drone poses ``[x, y, z, qw, qx, qy, qz]`` (world).
+        camera: the mount (``offset`` in the body frame, ``rotation`` body->camera).
+
+    Returns:
+        ``(origins (n, 3), rotations (n, 3, 3))``: camera centre and camera-to-world rotation.
+    """
+    body = quat_to_matrix(poses[:, 3:7])
+    origins = poses[:, :3] + body @ np.asarray(camera.offset)
+    return origins, body @ quat_to_matrix(np.asarray(camera.rotation))
+
+
+def pixel_rays(camera: CameraSpec) -> np.ndarray:
+    """Ray directions through every pixel centre, in the camera frame.
+
+    Each direction has optical-axis component 1, so a ray parameter ``t`` is the z-depth of the point
+    ``t * direction`` directly.
+
+    Returns:
+        ``(H * W, 3)`` float64, row-major over ``(row, column)``.
+    """
+    f = camera.focal_px
+    cols = (np.arange(camera.width) + 0.5 - 0.5 * camera.width) / f
+    rows = (np.arange(camera.height) + 0.5 - 0.5 * camera.height) / f
+    right, down = np.meshgrid(cols, rows)
+    return np.stack([np.ones(right.size), -right.ravel(), -down.ravel()], axis=-1)
+
+
+def gl_camera_pose(origin: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """The 4x4 world pose of an OpenGL-convention camera (looks along -z) at our camera's pose."""
+    pose = np.eye(4)
+    pose[:3, :3] = rotation @ CAMERA_TO_GL
+    pose[:3, 3] = origin
+    return pose

@@ -1,0 +1,114 @@
+"""``visfly-dist worker``: serve scenes to one run over Zenoh until SIGTERM/SIGINT or the parent dies.
+
+Prints one line to stdout once it serves (launchers and tests wait for it)::
+
+    worker W ready on run R: backend B, listening on [...] / connected to [...]
+
+With ``--connect`` alone the worker is a Zenoh client of those endpoints (a router or a listening
+aggregator); with ``--listen`` it is a peer listening there (others connect to it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import re
+import signal
+import sys
+
+from visfly_dist.errors import ConfigError
+
+ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(?P<port>\d{1,5})([?#].*)?$")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--run-id", required=True, help="run namespace shared with the aggregator")
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable)")
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help="endpoint to listen on, e.g. tcp/127.0.0.1:7450 (repeatable)")
+    parser.add_argument("--mode", choices=("peer", "client"), default=None,
+                        help="Zenoh mode; default client with --connect alone, peer with --listen")
+    parser.add_argument("--scene-root", action="append", default=[], metavar="DIR",
+                        help="folder scene files may be loaded from (repeatable; default: current dir)")
+    parser.add_argument("--backend", choices=("auto", "egl", "raycast"), default="auto",
+                        help="renderer: egl (pyrender), raycast (Embree), auto (per scene's cameras)")
+    parser.add_argument("--worker-id", default=None, help="id in the run (default: <host>-<pid>)")
+    parser.add_argument("--no-shm", action="store_true", help="disable Zenoh shared memory")
+    parser.add_argument("--lease-ms", type=int, default=2000,
+                        help="link lease: a hung worker is declared dead after about this long")
+    parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",
+                        help="exit when this process is gone (local pools)")
+    parser.set_defaults(func=run)
+
+
+def check_endpoint(endpoint: str) -> str:
+    """Return ``endpoint`` if it looks like ``PROTO/HOST:PORT``; ConfigError otherwise."""
+    m = ENDPOINT.match(endpoint)
+    if not m or int(m.group("port")) > 65535:
+        raise ConfigError(f"endpoint {endpoint!r} must look like tcp/HOST:PORT (tcp, udp, tls, quic, ws; "
+                          "port 0-65535), e.g. tcp/127.0.0.1:7447")
+    return endpoint
+
+
+def session_config(args: argparse.Namespace):
+    """The SessionConfig the arguments ask for; ConfigError on contradictions."""
+    from visfly_dist.protocol.session import SessionConfig
+
+    connect = tuple(check_endpoint(e) for e in args.connect)
+    listen = tuple(check_endpoint(e) for e in args.listen)
+    if not connect and not listen:
+        raise ConfigError("give --connect ENDPOINT (join a router or aggregator) or --listen ENDPOINT (be reached)")
+    mode = args.mode or ("peer" if listen else "client")
+    if mode == "client" and listen:
+        raise ConfigError(f"--listen {list(listen)} needs --mode peer: a Zenoh client does not listen")
+    return SessionConfig(mode=mode, connect=connect, listen=listen, shared_memory=not args.no_shm,
+                         lease_ms=args.lease_ms)
+
+
+def parent_gone(parent_pid: int, original_ppid: int) -> bool:
+    """Whether ``parent_pid`` has exited (or, if it was our parent, we were re-parented)."""
+    if parent_pid == original_ppid and os.getppid() != original_ppid:
+        return True
+    try:
+        os.kill(parent_pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, owned by someone else
+        return False
+    return False
+
+
+def run(args: argparse.Namespace) -> int:
+    roots = args.scene_root or [os.getcwd()]
+    missing = [r for r in roots if not os.path.isdir(r)]
+    if missing:
+        raise ConfigError(f"--scene-root {missing} are not existing directories")
+    config = session_config(args)
+    if args.parent_pid is not None and args.parent_pid <= 0:
+        raise ConfigError(f"--parent-pid {args.parent_pid} must be a positive process id")
+    if "torch" in sys.modules:  # never import it here; only tame it if something else did
+        sys.modules["torch"].set_num_threads(1)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s worker %(process)d %(levelname)s %(message)s")
+
+    from visfly_dist.scene_worker.service import SceneWorker
+    from visfly_dist.scene_worker.shm import remove_own_segments
+
+    worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id)
+    original_ppid = os.getppid()
+    should_stop = None
+    if args.parent_pid is not None:
+        should_stop = lambda: parent_gone(args.parent_pid, original_ppid)  # noqa: E731
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: worker.stop())
+    try:
+        worker.start()
+        where = f"listening on {list(config.listen)}" if config.listen else f"connected to {list(config.connect)}"
+        print(f"worker {worker.worker_id} ready on run {args.run_id}: backend {args.backend}, {where}", flush=True)
+        worker.serve(should_stop=should_stop)
+    finally:
+        worker.close()
+    remove_own_segments()
+    return 0

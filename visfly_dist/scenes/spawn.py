@@ -1,0 +1,95 @@
+"""Sampling spawn positions that keep a clearance from every obstacle."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from visfly_dist.errors import SceneError
+
+DISTRIBUTIONS = ("uniform", "normal")
+
+
+def sample_free_positions(
+    n: int,
+    clearance: float,
+    distribution: str,
+    a,
+    b,
+    rng: np.random.Generator,
+    distance_fn: Callable[[np.ndarray], np.ndarray],
+    bounds=None,
+    max_tries: int = 100_000,
+) -> np.ndarray:
+    """Draw ``n`` positions whose obstacle distance is at least ``clearance``, by batched rejection.
+
+    Args:
+        n: number of positions.
+        clearance: minimum distance to any obstacle, m (also kept from the bounds' faces).
+        distribution: ``"uniform"`` (``a`` = low, ``b`` = high corner) or ``"normal"`` (``a`` =
+            mean, ``b`` = standard deviation per axis). ``a`` and ``b`` are 3-vectors or scalars.
+        a, b: the distribution's parameters (see above).
+        rng: source of randomness; the same state gives the same positions.
+        distance_fn: ``(m, 3) -> (m,)`` distance from each point to the nearest obstacle (negative
+            or zero inside or touching one).
+        bounds: optional ``(2, 3)`` flight box; positions stay ``clearance`` inside it.
+        max_tries: how many candidate points may be drawn in all.
+
+    Returns:
+        ``(n, 3)`` float64 positions, in the order they were drawn.
+
+    Raises:
+        SceneError: bad arguments, or fewer than ``n`` free positions found within ``max_tries``.
+    """
+    a, b = _vector(a, "a"), _vector(b, "b")
+    if distribution not in DISTRIBUTIONS:
+        raise SceneError(f"distribution={distribution!r} is not supported; use one of {list(DISTRIBUTIONS)}")
+    if distribution == "uniform" and np.any(b < a):
+        raise SceneError(f"uniform spawn needs low a={a.tolist()} <= high b={b.tolist()}")
+    if distribution == "normal" and np.any(b < 0):
+        raise SceneError(f"normal spawn needs std b={b.tolist()} >= 0")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise SceneError(f"n={n!r} must be an int >= 0")
+    if not (np.isfinite(clearance) and clearance >= 0):
+        raise SceneError(f"clearance={clearance!r} must be a finite number >= 0")
+    box = None
+    if bounds is not None:
+        bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+        box = (bounds[0] + clearance, bounds[1] - clearance)
+        if np.any(box[0] > box[1]):
+            raise SceneError(f"bounds {bounds.tolist()} shrunk by clearance={clearance} leave no room; lower the clearance")
+
+    found: list[np.ndarray] = []
+    count = tried = 0
+    while count < n and tried < max_tries:
+        batch = int(min(max_tries - tried, max(64, 4 * (n - count))))
+        points = rng.uniform(a, b, size=(batch, 3)) if distribution == "uniform" else rng.normal(a, b, size=(batch, 3))
+        tried += batch
+        keep = np.ones(batch, dtype=bool)
+        if box is not None:
+            keep &= np.all((points >= box[0]) & (points <= box[1]), axis=1)
+        if keep.any():
+            distance = np.asarray(distance_fn(points[keep]), dtype=np.float64).reshape(-1)
+            keep[keep] = distance >= clearance
+        found.append(points[keep])
+        count += int(keep.sum())
+    if count < n:
+        raise SceneError(
+            f"found only {count} of {n} positions with clearance={clearance} m in {distribution} region "
+            f"a={a.tolist()}, b={b.tolist()}" + (f" within bounds {bounds.tolist()}" if bounds is not None else "")
+            + f" after {tried} tries; widen the region, lower the clearance, or raise max_tries"
+        )
+    return np.concatenate(found)[:n] if found else np.zeros((0, 3))
+
+
+def _vector(value, name: str) -> np.ndarray:
+    try:
+        vector = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        vector = np.full(0, np.nan)
+    if vector.ndim == 0:
+        vector = np.full(3, float(vector))
+    if vector.shape != (3,) or not np.all(np.isfinite(vector)):
+        raise SceneError(f"{name}={value!r} must be a finite scalar or 3-vector")
+    return vector

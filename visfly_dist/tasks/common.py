@@ -1,0 +1,78 @@
+"""Small pieces the tasks share: frames, goal geometry and reward terms (all batched torch)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from visfly_dist.dynamics.rotations import rotate
+from visfly_dist.errors import ConfigError
+
+TARGET_DIM = 4
+"""``target_observation``: unit direction to the target in the body frame, distance (m)."""
+
+
+def to_body(quat: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """World vectors ``(N, 3)`` in each agent's body frame (``quat`` rotates body to world)."""
+    conj = quat * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=quat.dtype, device=quat.device)
+    return rotate(conj, v)
+
+
+def forward_axis(quat: torch.Tensor) -> torch.Tensor:
+    """``(N, 3)`` the body +x axis in the world frame."""
+    x = torch.zeros(quat.shape[0], 3, dtype=quat.dtype, device=quat.device)
+    x[:, 0] = 1.0
+    return rotate(quat, x)
+
+
+def target_observation(pos: torch.Tensor, quat: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``(N, 4)``: unit direction from ``pos`` to ``target`` in the body frame, then the distance (m)."""
+    delta = target - pos
+    dist = delta.norm(dim=1, keepdim=True)
+    return torch.cat((to_body(quat, delta / dist.clamp(min=1e-6)), dist), dim=1)
+
+
+def progress_speed(prev_distance: torch.Tensor, distance: torch.Tensor, dt: float) -> torch.Tensor:
+    """``(N,)`` speed of approach to a target, m/s (positive when getting closer)."""
+    return (prev_distance - distance) / dt
+
+
+def obstacle_terms(pos: torch.Tensor, vel: torch.Tensor, nearest: torch.Tensor, distance: torch.Tensor,
+                   search_radius: float, near: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Obstacle proximity ``1 / (d + 0.2)`` and approach speed toward the nearest obstacle (when ``d < near``).
+
+    ``d`` is the distance from the drone's centre to the nearest obstacle point; both terms are 0 where
+    no obstacle lies within ``search_radius``. The approach speed (m/s, positive toward the obstacle)
+    carries gradients through ``vel`` and ``pos``.
+    """
+    seen = distance < search_radius * 0.999
+    delta = nearest - pos
+    d = delta.norm(dim=1)
+    direction = delta / d.clamp(min=1e-6)[:, None]
+    approach = (vel * direction).sum(dim=1).clamp(min=0.0)
+    proximity = torch.where(seen, 1.0 / (d + 0.2), torch.zeros_like(d))
+    approach = torch.where(seen & (d < near), approach, torch.zeros_like(d))
+    return proximity, approach
+
+
+def metadata_point(meta: dict[str, Any], key: str, default: Sequence[float]) -> np.ndarray:
+    """A 3-vector from scene metadata, or ``default`` when the scene has none."""
+    value = meta.get(key, default)
+    point = np.asarray(value, dtype=np.float64).reshape(-1)
+    if point.shape != (3,) or not np.all(np.isfinite(point)):
+        raise ConfigError(f"scene metadata {key}={value!r} must be 3 finite numbers")
+    return point
+
+
+def vec3_problem(name: str, value: Any, positive: bool = False) -> list[str]:
+    """A problem message when ``value`` is not 3 finite numbers (``> 0`` each with ``positive``)."""
+    try:
+        v = [float(x) for x in value]
+    except (TypeError, ValueError):
+        return [f"{name}={value!r} must be 3 numbers"]
+    if len(v) != 3 or not all(math.isfinite(x) for x in v) or (positive and min(v) < 0):
+        return [f"{name}={value!r} must be 3 finite numbers" + (" >= 0" if positive else "")]
+    return []

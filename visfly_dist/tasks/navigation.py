@@ -1,0 +1,132 @@
+"""Navigation: fly through a cluttered garage to a goal with a forward depth camera.
+
+| observation | meaning                                                               | unit             | range      |
+|-------------|-----------------------------------------------------------------------|------------------|------------|
+| ``state``   | position minus goal (3), velocity (3), quaternion wxyz (4), body rates (3) | m, m/s, -, rad/s | unbounded  |
+| ``depth``   | forward depth image ``(1, 64, 64)``, 90 deg hfov, mounted 0.2 m forward | m                | [0, 20]    |
+| ``target``  | unit direction to the goal in the body frame (3), distance to it (1)  | -, m             | [-1, 1], >= 0 |
+
+Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
+
+Reward per step (``d_g`` distance to the goal, ``d_o`` to the nearest obstacle):
+
+| term       | value                                                             |
+|------------|-------------------------------------------------------------------|
+| progress   | ``0.05 * (d_g(t-1) - d_g(t)) / ctrl_dt`` (m/s toward the goal)    |
+| heading    | ``0.01 * cos`` of the angle between body +x and the goal direction |
+| speed      | ``-0.002 * |v|``                                                  |
+| spin       | ``-0.002 * |omega|``                                              |
+| proximity  | ``-0.01 / (d_o + 0.2)``                                          |
+| approach   | ``-0.05 *`` speed toward the nearest obstacle when ``d_o < 1 m``  |
+| success    | ``+success_bonus`` (10) on reaching the goal                      |
+| failure    | ``-fail_penalty`` (5) on failure                                  |
+
+Termination: success within ``success_radius`` (0.5 m) of the goal; failure on collision, inside
+an obstacle or leaving the scene's bounds. Truncation: 256 steps of 0.03 s. The goal is the scene
+metadata's ``goal`` when it has one (generated garages do), else ``config.goal``. Spawn: uniform in
+``(1, 0, 1.5) ± (0, 2, 1)``, 0.5 m clear of obstacles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from visfly_dist.client.config import EnvConfig
+from visfly_dist.client.env_base import DroneEnvBase, Spawn
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.tasks.common import (
+    TARGET_DIM, forward_axis, metadata_point, obstacle_terms, progress_speed, target_observation, vec3_problem,
+)
+
+FORWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, offset=(0.2, 0.0, 0.0))
+
+
+@dataclass
+class NavigationConfig(EnvConfig):
+    """Navigation settings; EnvConfig fields keep their meaning.
+
+    Attributes:
+        density: stones per cubic metre of the generated garage (used when ``scenes`` is empty).
+        goal: goal when the scene's metadata has none, m.
+        spawn_center, spawn_half_width: spawn box, m.
+        success_radius: success within this distance of the goal, m.
+        success_bonus, fail_penalty: terminal reward terms.
+    """
+
+    scenes: tuple[str, ...] = ()
+    cameras: tuple[CameraSpec, ...] = (FORWARD_DEPTH,)
+    density: float = 0.15
+    goal: tuple[float, float, float] = (9.0, 0.0, 1.0)
+    spawn_center: tuple[float, float, float] = (1.0, 0.0, 1.5)
+    spawn_half_width: tuple[float, float, float] = (0.0, 2.0, 1.0)
+    success_radius: float = 0.5
+    success_bonus: float = 10.0
+    fail_penalty: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not self.scenes:
+            self.scenes = (f"gen:garage-stones?density={self.density}",)
+        super().__post_init__()
+
+    def problems(self) -> list[str]:
+        out = super().problems() + vec3_problem("goal", self.goal) + vec3_problem("spawn_center", self.spawn_center)
+        out += vec3_problem("spawn_half_width", self.spawn_half_width, positive=True)
+        if not isinstance(self.density, (int, float)) or self.density < 0:
+            out.append(f"density={self.density!r} must be a number >= 0")
+        if not isinstance(self.success_radius, (int, float)) or not self.success_radius > 0:
+            out.append(f"success_radius={self.success_radius!r} must be a positive number of metres")
+        if not any(c.kind == "depth" for c in self.cameras):
+            out.append("navigation needs a depth camera in cameras (e.g. the default FORWARD_DEPTH)")
+        return out
+
+
+class NavigationEnv(DroneEnvBase):
+    """Reach the goal of a cluttered scene without touching anything."""
+
+    config_class = NavigationConfig
+    config: NavigationConfig
+
+    def __init__(self, config: NavigationConfig | None = None) -> None:
+        super().__init__(config)
+        self.goal = torch.zeros(self.num_envs, 3, device=self.device)
+        self._prev_distance = torch.zeros(self.num_envs, device=self.device)
+
+    def observation_space_dict(self) -> dict[str, spaces.Space]:
+        out = super().observation_space_dict()
+        out["target"] = spaces.Box(-np.inf, np.inf, (TARGET_DIM,), np.float32)
+        return out
+
+    def spawn_distribution(self) -> Spawn:
+        return Spawn.around(self.config.spawn_center, self.config.spawn_half_width, clearance=0.5)
+
+    def reset_agents_hook(self, idx: torch.Tensor) -> None:
+        goals = [metadata_point(self.scene_metadata(int(i)), "goal", self.config.goal) for i in idx.tolist()]
+        self.goal[idx] = torch.as_tensor(np.array(goals), dtype=torch.float32, device=self.device).reshape(-1, 3)
+        self._prev_distance[idx] = self.goal_distance().detach()[idx]
+
+    def goal_distance(self) -> torch.Tensor:
+        return (self.state.pos - self.goal).norm(dim=1)
+
+    def get_observation(self) -> dict[str, torch.Tensor]:
+        s = self.state
+        return {"state": self.state_vector(self.goal), "target": target_observation(s.pos, s.quat, self.goal),
+                **self.frame.images}
+
+    def get_success(self) -> torch.Tensor:
+        return self.goal_distance().detach() < self.config.success_radius
+
+    def get_reward(self) -> torch.Tensor:
+        s, cfg = self.state, self.config
+        distance = self.goal_distance()
+        progress = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
+        self._prev_distance = distance.detach()
+        to_goal = (self.goal - s.pos) / distance.clamp(min=1e-6)[:, None]
+        heading = (forward_axis(s.quat) * to_goal).sum(dim=1)
+        proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
+        reward = (0.05 * progress + 0.01 * heading - 0.002 * s.vel.norm(dim=1) - 0.002 * s.omega.norm(dim=1)
+                  - 0.01 * proximity - 0.05 * approach)
+        return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()

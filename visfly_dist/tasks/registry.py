@@ -1,0 +1,48 @@
+"""``make_env``: build a task's vector env by name, with settings overridden by keyword."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from visfly_dist.client.env_base import DroneEnvBase
+from visfly_dist.errors import ConfigError
+
+TASKS: dict[str, str] = {
+    "navigation": "visfly_dist.tasks.navigation:NavigationEnv",
+    "hover": "visfly_dist.tasks.hover:HoverEnv",
+    "landing": "visfly_dist.tasks.landing:LandingEnv",
+    "gap_crossing": "visfly_dist.tasks.gap_crossing:GapCrossingEnv",
+    "racing": "visfly_dist.tasks.racing:RacingEnv",
+}
+"""Task name -> ``module:EnvClass``."""
+
+
+def task_class(name: str) -> type[DroneEnvBase]:
+    """The env class of task ``name``; ConfigError listing the valid names otherwise."""
+    if name not in TASKS:
+        raise ConfigError(f"unknown task {name!r}; valid tasks: {', '.join(TASKS)}")
+    module, cls = TASKS[name].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def make_env(name: str, num_envs: int | None = None, **overrides: Any) -> DroneEnvBase:
+    """Build task ``name`` as an SB3 ``VecEnv`` (workers are started; close it when done).
+
+    Args:
+        name: one of :data:`TASKS`.
+        num_envs: agents in the batch (default: the task's).
+        overrides: any field of the task's config class (e.g. ``cameras=()``, ``seed=3``,
+            ``pool=PoolConfig(num_local_workers=1)``).
+
+    Raises:
+        ConfigError: unknown task or setting, or an invalid config (every problem listed).
+    """
+    cls = task_class(name)
+    config_class = cls.config_class
+    unknown = sorted(set(overrides) - set(config_class.field_names()))
+    if unknown:
+        raise ConfigError(f"unknown setting(s) {unknown} for task {name!r}; valid: {sorted(config_class.field_names())}")
+    if num_envs is not None:
+        overrides["num_envs"] = num_envs
+    return cls(config_class(**overrides))

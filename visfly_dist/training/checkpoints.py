@@ -1,0 +1,99 @@
+"""Saving and loading a policy with its observation-normalisation statistics, without pickle.
+
+A checkpoint is SB3's ``NAME.zip`` plus, when the run normalises observations, ``NAME.norm.npz``:
+the running mean, variance and count of each normalised observation entry (``obs/KEY/mean`` ...),
+of the return (``ret/...``), and the clip and epsilon settings. ``VecNormalize.save`` would pickle
+the whole wrapper; plain arrays are enough to rebuild it around a fresh env.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.running_mean_std import RunningMeanStd
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+
+from visfly_dist.errors import ConfigError
+
+
+def norm_path(checkpoint: Path) -> Path:
+    """Where the normalisation statistics of ``checkpoint`` (``NAME.zip``) live: ``NAME.norm.npz``."""
+    checkpoint = Path(checkpoint)
+    return checkpoint.with_name(checkpoint.name.removesuffix(".zip") + ".norm.npz")
+
+
+def save_normalization(venv: VecNormalize, path: Path) -> None:
+    """Write ``venv``'s running statistics to ``path`` (npz)."""
+    arrays: dict[str, np.ndarray] = {
+        "clip_obs": np.float64(venv.clip_obs),
+        "clip_reward": np.float64(venv.clip_reward),
+        "epsilon": np.float64(venv.epsilon),
+        "gamma": np.float64(venv.gamma),
+        "norm_reward": np.bool_(venv.norm_reward),
+        "ret/mean": np.asarray(venv.ret_rms.mean),
+        "ret/var": np.asarray(venv.ret_rms.var),
+        "ret/count": np.float64(venv.ret_rms.count),
+    }
+    for key, rms in venv.obs_rms.items():
+        arrays[f"obs/{key}/mean"] = rms.mean
+        arrays[f"obs/{key}/var"] = rms.var
+        arrays[f"obs/{key}/count"] = np.float64(rms.count)
+    with Path(path).open("wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_normalization(venv: VecEnv, path: Path) -> VecNormalize:
+    """Wrap ``venv`` in a frozen ``VecNormalize`` (``training=False``) with the statistics at ``path``."""
+    with np.load(path, allow_pickle=False) as data:
+        keys = sorted({name.split("/")[1] for name in data.files if name.startswith("obs/")})
+        missing = [k for k in keys if k not in venv.observation_space.spaces]
+        if missing:
+            raise ConfigError(f"normalisation file {path} has entries {missing} the env does not observe; is it from another task?")
+        wrapped = VecNormalize(
+            venv,
+            training=False,
+            norm_obs=bool(keys),
+            norm_reward=bool(data["norm_reward"]),
+            norm_obs_keys=keys or None,
+            clip_obs=float(data["clip_obs"]),
+            clip_reward=float(data["clip_reward"]),
+            gamma=float(data["gamma"]),
+            epsilon=float(data["epsilon"]),
+        )
+        for key in keys:
+            rms = RunningMeanStd(shape=data[f"obs/{key}/mean"].shape)
+            rms.mean, rms.var, rms.count = data[f"obs/{key}/mean"], data[f"obs/{key}/var"], float(data[f"obs/{key}/count"])
+            wrapped.obs_rms[key] = rms
+        wrapped.ret_rms.mean, wrapped.ret_rms.var = data["ret/mean"], data["ret/var"]
+        wrapped.ret_rms.count = float(data["ret/count"])
+    return wrapped
+
+
+def save_checkpoint(model: BaseAlgorithm, path: Path) -> Path:
+    """Save the model to ``path`` (``.zip``) and, when its env is a VecNormalize, the statistics beside it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    venv = model.get_env()
+    if isinstance(venv, VecNormalize):
+        save_normalization(venv, norm_path(path))
+    return path
+
+
+class CheckpointEvery(BaseCallback):
+    """Saves ``checkpoints/step_<timesteps>.zip`` (and statistics) every ``every`` env steps."""
+
+    def __init__(self, folder: Path, every: int) -> None:
+        super().__init__()
+        self.folder = Path(folder)
+        self.every = every
+        self._next = every
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            save_checkpoint(self.model, self.folder / f"step_{self.num_timesteps}.zip")
+            self._next += self.every
+        return True

@@ -1,0 +1,160 @@
+"""PPO training of a visfly-dist task, top to bottom: config, env, policy, loop, logging.
+
+What a run writes in its folder (``TrainConfig.out``):
+
+- ``config.json``: the full resolved configuration;
+- ``events.out.tfevents.*`` and ``progress.csv``: SB3's losses plus ``charts/success_rate``,
+  ``charts/mean_return``, ``charts/mean_length``, ``charts/steps_per_second`` (TensorBoard:
+  ``tensorboard --logdir runs``);
+- ``success_curve.csv`` / ``success_curve.png``: success rate and mean return against timesteps;
+- ``checkpoints/step_<timesteps>.zip`` every ``checkpoint_every`` steps, and ``final.zip``
+  (also written when the run is interrupted with Ctrl-C); each with ``*.norm.npz`` when
+  observations are normalised (see :mod:`visfly_dist.training.checkpoints`).
+
+The same pieces serve your own scripts: ``build_env(cfg)`` gives the wrapped VecEnv and
+``build_model(cfg, env)`` the PPO model; or skip both and use ``make_env`` with
+:func:`visfly_dist.training.extractors.visfly_policy_kwargs` directly.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
+
+from visfly_dist.aggregator.config import PoolConfig
+from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.tasks import make_env, task_class
+from visfly_dist.training.callbacks import SuccessCallback
+from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
+from visfly_dist.training.config import TrainConfig
+from visfly_dist.training.extractors import visfly_policy_kwargs
+
+
+@dataclass
+class TrainResult:
+    """What a finished (or interrupted) run produced."""
+
+    run_dir: Path
+    final_model: Path
+    timesteps: int
+    interrupted: bool
+    summary: dict[str, float]
+
+
+def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
+    """Keyword arguments of ``make_env`` for this run: seed, ``--set`` overrides, pool settings.
+
+    ``--set`` values arrive as JSON: ``cameras`` entries given as maps become ``CameraSpec``s, and
+    a ``pool`` map changes fields of the task's default ``PoolConfig`` (as ``--workers`` etc. do).
+
+    Raises:
+        ConfigError: unknown task or pool field.
+    """
+    overrides = dict(cfg.overrides)
+    pool_changes = overrides.pop("pool", {}) or {}
+    if not isinstance(pool_changes, dict):
+        raise ConfigError(f"--set pool={pool_changes!r} must be a JSON map of PoolConfig fields, e.g. pool={{\"lease_ms\":5000}}")
+    flags = {"num_local_workers": cfg.workers, "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id, "backend": cfg.backend}
+    pool_changes.update({k: v for k, v in flags.items() if v is not None})
+    kwargs: dict[str, Any] = {"seed": cfg.seed, **overrides}
+    if isinstance(kwargs.get("cameras"), list):
+        kwargs["cameras"] = tuple(CameraSpec.from_dict(c) if isinstance(c, dict) else c for c in kwargs["cameras"])
+    if pool_changes:
+        default_pool = task_class(cfg.task).config_class().pool
+        unknown = sorted(set(pool_changes) - set(PoolConfig.__dataclass_fields__))
+        if unknown:
+            raise ConfigError(f"unknown pool setting(s) {unknown}; valid: {sorted(PoolConfig.__dataclass_fields__)}")
+        kwargs["pool"] = replace(default_pool, **pool_changes)
+    return kwargs
+
+
+def vector_keys(space: spaces.Dict) -> list[str]:
+    """Float entries that are not images: the ones VecNormalize normalises."""
+    return [k for k, s in space.spaces.items() if isinstance(s, spaces.Box) and len(s.shape) < 3 and np.issubdtype(s.dtype, np.floating)]
+
+
+def build_env(cfg: TrainConfig) -> VecEnv:
+    """``make_env`` wrapped in VecMonitor (episode stats) and, with ``cfg.normalize``, VecNormalize."""
+    env: VecEnv = VecMonitor(make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)))
+    if cfg.normalize:
+        keys = vector_keys(env.observation_space)
+        env = VecNormalize(env, norm_obs=bool(keys), norm_obs_keys=keys or None, norm_reward=True, gamma=cfg.gamma)
+    return env
+
+
+def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
+    """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder."""
+    model = PPO(
+        "MultiInputPolicy",
+        env,
+        learning_rate=cfg.lr,
+        n_steps=cfg.n_steps,
+        batch_size=cfg.batch_size,
+        n_epochs=cfg.n_epochs,
+        gamma=cfg.gamma,
+        gae_lambda=cfg.gae_lambda,
+        ent_coef=cfg.ent_coef,
+        clip_range=cfg.clip_range,
+        policy_kwargs=visfly_policy_kwargs(cfg.backbone),
+        seed=cfg.seed,
+        device=cfg.device,
+        verbose=0,
+    )
+    model.set_logger(configure(str(cfg.out), ["tensorboard", "csv"]))
+    return model
+
+
+def write_config(cfg: TrainConfig, run_dir: Path) -> None:
+    """Print the full config and save it as ``config.json``."""
+    text = json.dumps(cfg.to_dict(), indent=2, default=str)
+    print(f"visfly-dist train {cfg.task}: run folder {run_dir}\n{text}", flush=True)
+    (run_dir / "config.json").write_text(text + "\n")
+
+
+def train(cfg: TrainConfig) -> TrainResult:
+    """Run PPO on ``cfg.task``; Ctrl-C stops early, saves ``final.zip`` and closes the env.
+
+    Raises:
+        ConfigError: a bad setting, raised before any worker starts.
+    """
+    cfg = cfg.resolved().validate()
+    torch.set_num_threads(cfg.threads)
+    run_dir = Path(cfg.out)
+    env = build_env(cfg)
+    interrupted = False
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_config(cfg, run_dir)
+        model = build_model(cfg, env)
+        success = SuccessCallback(run_dir, cfg.timesteps, verbose=int(cfg.progress))
+        callbacks = [success]
+        if cfg.checkpoint_every:
+            callbacks.append(CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every))
+        try:
+            model.learn(cfg.timesteps, callback=callbacks, progress_bar=False)
+        except KeyboardInterrupt:
+            interrupted = True
+            print(f"interrupted at {model.num_timesteps:,} steps; saving the model", file=sys.stderr, flush=True)
+            success.on_training_end()
+        final = save_checkpoint(model, run_dir / "final.zip")
+        result = TrainResult(run_dir, final, model.num_timesteps, interrupted, success.summary())
+    finally:
+        env.close()
+    s = result.summary
+    print(
+        f"done: {result.timesteps:,} steps, success rate {s['success_rate']:.2f}, mean return {s['mean_return']:.2f}; "
+        f"model {final}",
+        flush=True,
+    )
+    return result

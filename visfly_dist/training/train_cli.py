@@ -1,0 +1,79 @@
+"""``visfly-dist train TASK``: PPO on a task, with logs, checkpoints and a success curve.
+
+Example::
+
+    visfly-dist train navigation                      # task defaults, local workers
+    visfly-dist train hover --timesteps 50000 --num-envs 8 --set max_episode_steps=128
+    visfly-dist train navigation --connect tcp/10.0.0.5:7447 --run-id exp1 --workers 0
+
+Defaults depend on the task (``visfly_dist.training.config.TASK_DEFAULTS``); the resolved config is
+printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` for what a
+run writes, and :mod:`visfly_dist.training.extractors` for training with your own algorithm.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from visfly_dist.training.config import BACKBONES, TrainConfig, parse_override
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing")
+    parser.add_argument("--timesteps", type=int, help="total env steps (default: per task)")
+    parser.add_argument("--num-envs", type=int, help="parallel agents (default: per task)")
+    parser.add_argument("--workers", type=int, help="local scene workers to spawn (default: the env's)")
+    parser.add_argument("--connect", action="append", default=[], metavar="EP", help="Zenoh endpoint to join (repeatable)")
+    parser.add_argument("--run-id", help="key namespace of this run (default: random)")
+    parser.add_argument("--backend", choices=("auto", "egl", "raycast"), help="renderer of local workers")
+    parser.add_argument("--seed", type=int, default=0, help="seed of env, policy and sampling (default 0)")
+    parser.add_argument("--out", help="run folder (default runs/TASK-<timestamp>)")
+    parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads of the trainer (default 1)")
+    parser.add_argument("--n-steps", type=int, help="rollout steps per env between updates")
+    parser.add_argument("--batch-size", type=int, help="PPO minibatch size")
+    parser.add_argument("--n-epochs", type=int, default=5, help="passes over each rollout (default 5)")
+    parser.add_argument("--lr", type=float, default=3e-4, help="learning rate (default 3e-4)")
+    parser.add_argument("--gamma", type=float, default=0.99, help="discount (default 0.99)")
+    parser.add_argument("--ent-coef", type=float, default=0.0, help="entropy bonus (default 0)")
+    parser.add_argument("--checkpoint-every", type=int, default=50_000, metavar="STEPS", help="0: only the final model")
+    parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
+    parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
+    parser.set_defaults(func=run)
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """The TrainConfig the command line describes (unresolved: task defaults fill ``None``)."""
+    return TrainConfig(
+        task=args.task,
+        timesteps=args.timesteps,
+        num_envs=args.num_envs,
+        workers=args.workers,
+        connect=tuple(args.connect),
+        run_id=args.run_id,
+        backend=args.backend,
+        seed=args.seed,
+        out=args.out,
+        device=args.device,
+        threads=args.threads,
+        n_steps=args.n_steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        n_epochs=args.n_epochs,
+        gamma=args.gamma,
+        ent_coef=args.ent_coef,
+        checkpoint_every=args.checkpoint_every,
+        backbone=args.backbone,
+        normalize=not args.no_normalize,
+        progress=not args.quiet,
+        overrides=dict(parse_override(item) for item in args.set),
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from visfly_dist.training.ppo import train
+
+    result = train(config_from_args(args))
+    return 130 if result.interrupted else 0
