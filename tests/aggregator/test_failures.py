@@ -44,14 +44,16 @@ def test_sigkill_moves_scenes_then_no_workers_left():
 
 
 def test_hung_worker_is_killed_replaced_and_rebalanced():
-    with make_aggregator(pool={"respawn": True, "step_timeout_s": 3.0}) as agg:
+    # A long lease keeps the hung worker's token alive: only the step deadline can catch it.
+    with make_aggregator(pool={"respawn": True, "step_timeout_s": 2.0, "lease_ms": 10_000}) as agg:
         poses = spawn_poses(agg)
         before = agg.observe(poses)
         victim, pid, affected = _victim(agg)
         os.kill(pid, signal.SIGSTOP)  # a hang: the process lives but answers nothing
 
-        obs = agg.observe(poses)
+        obs = agg.observe(poses)  # waits out the deadline, then serves the last good data
         assert obs.lost.tolist() == affected.tolist()
+        assert obs.timings["total_s"] >= 2.0
         np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])
         assert wait_for(lambda: not pid_alive(pid), timeout=10)  # the hung worker was killed
         assert wait_for(lambda: len(agg.workers) == 2, timeout=60), agg.workers

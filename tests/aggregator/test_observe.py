@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from tests.aggregator.conftest import CAMERAS, make_aggregator, pid_alive, reference, spawn_poses
+from visfly_dist.protocol import UnloadScene
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +80,16 @@ def test_close_leaves_no_child_process():
     agg.close()
     agg.close()  # idempotent
     assert not any(pid_alive(p) for p in pids)
+
+
+def test_scenes_forgotten_by_a_worker_are_reloaded_and_retried(agg, poses):
+    before = agg.observe(poses)
+    worker = agg.assignment()[1]
+    slots = [s for s, w in agg.assignment().items() if w == worker]
+    # As if the worker restarted under the same id between our liveliness check and the request.
+    replies = agg._pool.call([(worker, UnloadScene(f"s{s}").to_message()) for s in slots], 5.0)
+    assert all(r.message["type"] == "ok" for r in replies)
+    obs = agg.observe(poses)
+    assert obs.lost.tolist() == np.isin(agg.agent_scene, slots).tolist()
+    np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])
+    assert not agg.observe(poses).lost.any()

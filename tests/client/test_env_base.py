@@ -1,5 +1,8 @@
 """DroneEnvBase as an SB3 VecEnv: spaces, auto-reset semantics, infos, seeding, gradients, close."""
 
+import os
+import signal
+
 import numpy as np
 import pytest
 import torch
@@ -8,7 +11,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecFrameStack, VecMonitor, 
 from visfly_dist.client.noise import NoiseSpec
 from visfly_dist.errors import ConfigError
 
-from .conftest import make_counter
+from tests.client.counter_task import make_counter, small_pool
 
 
 @pytest.fixture(scope="module")
@@ -149,11 +152,9 @@ def test_bad_action_shape_is_rejected(env):
         env.step(np.zeros((3, 4), np.float32))
 
 
-def test_gradients_flow_from_reward_to_actions(env):
-    env.reset()
-    env.config.requires_grad = True
-    try:
-        env.detach()
+def test_gradients_flow_from_reward_to_actions():
+    with make_counter(num_envs=2, requires_grad=True) as env:
+        env.reset()
         actions = torch.as_tensor(hover(env)).requires_grad_()
         total = 0.0
         for _ in range(3):
@@ -162,10 +163,11 @@ def test_gradients_flow_from_reward_to_actions(env):
         total.backward()
         assert actions.grad is not None and torch.isfinite(actions.grad).all()
         assert actions.grad[:, 0].gt(0).all()  # more thrust -> higher -> more reward
+        assert env.state.pos.requires_grad
         env.detach()
         assert not env.state.pos.requires_grad
-    finally:
-        env.config.requires_grad = False
+        _, reward, _, _ = env.step(hover(env))  # the SB3 path still gives numpy
+        assert isinstance(reward, np.ndarray)
 
 
 def test_close_is_idempotent_and_the_env_refuses_work_afterwards():
@@ -175,3 +177,20 @@ def test_close_is_idempotent_and_the_env_refuses_work_afterwards():
     env.close()
     with pytest.raises(ConfigError, match="closed"):
         env.reset()
+
+
+def test_agents_of_a_killed_worker_are_truncated_as_lost_and_reset():
+    with make_counter(num_envs=4, max_episode_steps=50, pool=small_pool(workers=2, respawn=False)) as env:
+        env.reset()
+        env.step(hover(env))
+        victim = env.aggregator.workers[0]
+        slots = [s for s, w in env.aggregator.assignment().items() if w == victim]
+        affected = np.isin(env.aggregator.agent_scene, slots)
+        os.kill(env.aggregator.local_worker_pids()[victim], signal.SIGKILL)
+        obs, _, done, infos = env.step(hover(env))
+        assert done.tolist() == affected.tolist()
+        for i in np.flatnonzero(affected):
+            assert infos[i]["lost"] is True and infos[i]["TimeLimit.truncated"] is True
+            assert infos[i]["terminal_observation"]["step"][0] == 2 and obs["step"][i, 0] == 0
+        _, _, done, _ = env.step(hover(env))
+        assert not done.any()

@@ -9,7 +9,7 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 from visfly_dist.errors import ConfigError
 
-from .conftest import make_counter
+from tests.client.counter_task import make_counter
 
 
 @pytest.fixture(scope="module")

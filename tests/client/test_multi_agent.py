@@ -9,7 +9,7 @@ import torch
 from visfly_dist.client import MultiDroneEnvBase
 from visfly_dist.dynamics import QuadState
 
-from .conftest import CounterConfig, CounterTask, small_pool
+from tests.client.counter_task import CounterConfig, CounterTask, small_pool
 
 
 class TeamTask(MultiDroneEnvBase, CounterTask):

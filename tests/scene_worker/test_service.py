@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import re
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -18,6 +19,7 @@ from visfly_dist.protocol.codec import PROTOCOL_VERSION, encode
 from visfly_dist.protocol.messages import (
     Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene,
 )
+from visfly_dist.scene_worker import shm
 from visfly_dist.scene_worker.queries import ObstacleQueries
 from visfly_dist.scene_worker.render_base import make_renderer
 from visfly_dist.scenes import resolve_source
@@ -226,3 +228,26 @@ def test_bad_request_gets_an_error_reply_and_the_worker_keeps_serving(worker, na
     ok, reply = _step(proc, session, _poses_at_origin(2))
     assert ok and reply["scenes"][0]["images"]["depth"].shape == (2, 1, 48, 64)
     assert proc.poll() is None
+
+
+def test_shared_memory_is_used_only_when_asked(worker, request):
+    proc, session, _ = worker
+    ok, _ = _step(proc, session, _poses_at_origin(50))  # a 600 kB reply: over shared memory if enabled
+    assert ok
+    held = shm._zenoh_files_open_in(Path(f"/proc/{proc.pid}/fd"))
+    assert bool(held) == ("shm" in request.node.callspec.id), held
+
+
+def test_egl_worker_matches_in_process_egl(worker_factory):
+    scene = resolve_source(SOURCE, [os.getcwd()])
+    proc = worker_factory(RUN, backend="egl")
+    poses = _poses(scene, 6, seed=5)
+    with client_session(proc.endpoint) as session:
+        ok, reply = call(session, proc.rpc_key, LoadScene("s0", SOURCE, CAMERAS, drone_radius=RADIUS).to_message())
+        assert ok and reply["backend"] == "egl", reply
+        ok, reply = _step(proc, session, poses)
+        assert ok, reply
+    with make_renderer("egl", scene, CAMERAS, drone_radius=RADIUS) as renderer:
+        expected = renderer.render(poses.astype(np.float64))
+    for name in ("depth", "seg"):
+        np.testing.assert_array_equal(reply["scenes"][0]["images"][name], expected[name])

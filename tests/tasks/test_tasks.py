@@ -1,10 +1,13 @@
 """Every task: builds through make_env, steps with random actions, finite rewards, obs match spaces."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from visfly_dist import make_env
+from visfly_dist.aggregator import PoolConfig
 from visfly_dist.dynamics import QuadState
 from visfly_dist.errors import ConfigError
 from visfly_dist.tasks import TASKS
@@ -12,7 +15,14 @@ from visfly_dist.tasks.gap_crossing import GapCrossingConfig
 from visfly_dist.tasks.landing import DOWNWARD_RGB, LandingConfig, pad_in_image
 from visfly_dist.tasks.navigation import FORWARD_DEPTH
 
-from .conftest import small
+
+def small(cameras=(), **changes):
+    """Overrides for ``make_env``: tiny images of the task's own cameras, one raycast worker."""
+    changes.setdefault("pool", PoolConfig(num_local_workers=1, backend="raycast", startup_timeout_s=60.0))
+    if cameras:
+        changes["cameras"] = tuple(dataclasses.replace(c, width=16, height=16) for c in cameras)
+    return changes
+
 
 SETTINGS = {
     "navigation": dict(num_envs=2, **small((FORWARD_DEPTH,), density=0.05)),

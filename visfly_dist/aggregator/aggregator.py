@@ -481,7 +481,7 @@ class Aggregator:
         replies = self._pool.call([(w, Health().to_message()) for w in live], self.pool_config.step_timeout_s)
         out = []
         for reply in replies:
-            entry: dict[str, Any] = dict(reply.message or {"worker_id": reply.worker_id})
+            entry = {k: v for k, v in (reply.message or {}).items() if k not in ("version", "type")}
             entry["worker_id"] = reply.worker_id
             entry["local"] = self._pool.is_local(reply.worker_id)
             entry["slots"] = [s.index for s in self._slots if s.worker == reply.worker_id]

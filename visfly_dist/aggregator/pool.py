@@ -2,17 +2,18 @@
 
 Invariants (zenoh-facts.md):
 - Liveliness is the source of truth for "alive": a worker is usable while its token exists and we
-  have not banned it. A DELETE (process gone, or its lease expired when hung) removes it at once.
-  A worker that misses a deadline is banned even if its token lingers; a later DELETE lifts the
+  have not banned it. A DELETE (process gone, or its lease expired when hung) removes it. A
+  worker that misses a deadline is banned even if its token lingers; a later DELETE lifts the
   ban, so a worker restarted under the same id can come back. Each PUT bumps the worker's
   generation: a scene loaded at an older generation is gone from the worker and must be reloaded.
+  Events queue on a channel that the calling thread drains: no callback thread, so no locks, and
+  no hang at interpreter exit if a user forgets ``close()``.
 - Every request is a ``get`` with a timeout and ``ConsolidationMode.NONE``; all gets of a batch are
   issued before any is gathered, so a batch costs the slowest worker, not the sum. Zero replies
   (worker gone, or it dropped the query) and a ``Timeout`` reply both mean the worker is failing;
   an error reply in our codec is the worker reporting a problem with the request.
 - Local workers are spawned with subprocess (fork + exec, safe after the session opened) and are
-  stopped on close, SIGTERM first, then SIGKILL after a grace period. The session is closed on
-  close, or the interpreter would hang at exit on the liveliness subscriber's thread.
+  stopped on close, SIGTERM first, then SIGKILL after a grace period; the session is closed too.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import os
 import shutil
 import socket
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -39,6 +39,8 @@ from visfly_dist.protocol.session import SessionConfig, open_session
 log = logging.getLogger(__name__)
 
 STOP_GRACE_S = 5.0
+POLL_S = 0.02
+LIVELINESS_QUEUE = 4096
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -81,7 +83,6 @@ class WorkerPool:
     def __init__(self, config: PoolConfig, run_id: str) -> None:
         self.config = config
         self.run_id = run_id
-        self._lock = threading.Condition()
         self._alive: set[str] = set()
         self._banned: set[str] = set()
         self._generation: dict[str, int] = {}
@@ -110,7 +111,7 @@ class WorkerPool:
         self._session = open_session(session_cfg)
         try:
             self._subscriber = self._session.liveliness().declare_subscriber(
-                keys.workers_alive_pattern(self.run_id), self._on_liveliness, history=True)
+                keys.workers_alive_pattern(self.run_id), zenoh.handlers.FifoChannel(LIVELINESS_QUEUE), history=True)
             if self.config.num_local_workers:
                 self._log_dir = tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")
                 self._launch = WorkerLaunchSpec(
@@ -139,27 +140,28 @@ class WorkerPool:
 
     # ----- liveliness ------------------------------------------------------------------------
 
-    def _on_liveliness(self, sample: "zenoh.Sample") -> None:
-        # Runs on Zenoh's callback thread: only touch state under the lock.
-        wid = keys.worker_id_from_alive_key(str(sample.key_expr))
-        with self._lock:
+    def _poll_liveliness(self) -> None:
+        """Apply the liveliness events queued since the last poll (main thread only)."""
+        if self._subscriber is None:
+            return
+        while (sample := self._subscriber.try_recv()) is not None:
+            wid = keys.worker_id_from_alive_key(str(sample.key_expr))
             if sample.kind == zenoh.SampleKind.PUT:
                 self._alive.add(wid)
                 self._generation[wid] = self._generation.get(wid, 0) + 1
             else:
                 self._alive.discard(wid)
                 self._banned.discard(wid)
-            self._lock.notify_all()
 
     def live_workers(self) -> list[str]:
         """Ids of the workers that are alive and not banned, sorted."""
-        with self._lock:
-            return sorted(self._alive - self._banned)
+        self._poll_liveliness()
+        return sorted(self._alive - self._banned)
 
     def generation(self, worker_id: str) -> int:
         """How many times this worker's token appeared (a new value means it restarted)."""
-        with self._lock:
-            return self._generation.get(worker_id, 0)
+        self._poll_liveliness()
+        return self._generation.get(worker_id, 0)
 
     def wait_for(self, count: int, timeout_s: float, required: Sequence[str] = (),
                  remote_may_join: bool = False) -> list[str]:
@@ -169,18 +171,16 @@ class WorkerPool:
         local worker is still starting and no remote one may join.
         """
         deadline = time.monotonic() + timeout_s
-        with self._lock:
-            while True:
-                live = self._alive - self._banned
-                starting = [w for w in self._local.values() if w.worker_id not in live and w.running()]
-                missing = [w for w in required if w not in live and w in self._local and self._local[w].running()]
-                if len(live) >= count and not missing:
-                    break
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (not starting and not remote_may_join):
-                    break
-                self._lock.wait(min(remaining, 0.1))
-            return sorted(self._alive - self._banned)
+        while True:
+            live = set(self.live_workers())
+            starting = [w for w in self._local.values() if w.worker_id not in live and w.running()]
+            missing = [w for w in required if w not in live and w in self._local and self._local[w].running()]
+            if len(live) >= count and not missing:
+                break
+            if time.monotonic() >= deadline or (not starting and not remote_may_join):
+                break
+            time.sleep(POLL_S)
+        return sorted(live)
 
     # ----- local processes -------------------------------------------------------------------
 
@@ -215,9 +215,9 @@ class WorkerPool:
         Returns the replacement's id (not yet live), or ``None``.
         """
         log.warning("run %s: dropping worker %s: %s", self.run_id, worker_id, reason)
-        with self._lock:
-            if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
-                self._banned.add(worker_id)
+        self._poll_liveliness()
+        if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
+            self._banned.add(worker_id)
         worker = self._local.pop(worker_id, None)
         if worker is None:
             return None

@@ -104,13 +104,13 @@ def make_step_env(task: str, agents: int, workers: int, res: int, backend: str, 
     With ``scenes`` given, ``agents`` is rounded down to a multiple of it.
     """
     from visfly_dist import make_env
-    from visfly_dist.tasks import task_config_class
+    from visfly_dist.tasks import task_class
 
     scenes = scenes or workers
     per_scene = agents // scenes
     if per_scene < 1:
         raise ConfigError(f"{agents=} must be at least scenes={scenes}; raise --agents or lower the scenes")
-    defaults = task_config_class(task)()
+    defaults = task_class(task).config_class()
     cameras = tuple(dataclasses.replace(c, width=res, height=res) for c in defaults.cameras)
     pool = dataclasses.replace(defaults.pool, num_local_workers=workers, backend=backend, shared_memory=shm,
                                min_workers=workers)

@@ -1,4 +1,4 @@
-"""A tiny deterministic task and small env configs shared by the client tests.
+"""A tiny deterministic task (CounterTask) and small env configs shared by the client tests.
 
 Envs start real worker processes (raycast backend); fixtures are module-scoped and closed.
 """
@@ -26,8 +26,8 @@ class CounterConfig(EnvConfig):
     num_envs: int = 4
 
 
-def small_pool(workers: int = 1) -> PoolConfig:
-    return PoolConfig(num_local_workers=workers, backend="raycast", startup_timeout_s=60.0)
+def small_pool(workers: int = 1, **changes) -> PoolConfig:
+    return PoolConfig(num_local_workers=workers, backend="raycast", startup_timeout_s=60.0, **changes)
 
 
 class CounterTask(DroneEnvBase):
