@@ -39,7 +39,8 @@ def test_runs_on_one_router_stay_apart_without_shared_memory(router, scene_root)
     remote = start_worker("run-b", router, scene_root, connect=True, shm=False, worker_id="remote-b")
     a = make_aggregator(pool={"connect": (router,), "num_local_workers": 1, "run_id": "run-a", "shared_memory": False},
                         scenes=SCENES)
-    b = make_aggregator(pool={"connect": (router,), "num_local_workers": 1, "run_id": "run-b", "shared_memory": False},
+    b = make_aggregator(pool={"connect": (router,), "num_local_workers": 1, "run_id": "run-b", "shared_memory": False,
+                              "min_workers": 2},
                         scenes=SCENES)
     try:
         a.start()

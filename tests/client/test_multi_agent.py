@@ -1,7 +1,5 @@
 """MultiDroneEnvBase: teams, teammates' observation, inter-drone collision, team resets, scene swaps."""
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 import torch

@@ -77,3 +77,23 @@ def test_errors_name_the_bad_value() -> None:
     assert VisflyExtractor(dict_space(depth=spaces.Box(0.0, 20.0, (1, 8, 8), np.float32)), backbone="resnet-tiny").features_dim == 128
     with pytest.raises(ConfigError, match="'mode'.*Box entries"):
         VisflyExtractor(spaces.Dict({"mode": spaces.Discrete(3)}))
+
+
+@pytest.mark.parametrize("task", ["hover", "navigation", "landing", "gap_crossing", "racing"])
+def test_forward_on_real_task_observations(task: str) -> None:
+    from visfly_dist.tasks import make_env
+    from visfly_dist.training.config import TrainConfig
+    from visfly_dist.training.ppo import env_kwargs
+
+    num_envs = 3 if task == "gap_crossing" else 2
+    with make_env(task, num_envs=num_envs, **env_kwargs(TrainConfig(task=task, workers=1))) as env:
+        obs = env.reset()
+        obs, *_ = env.step(np.zeros((num_envs, 4), np.float32))
+    space = env.observation_space
+    ext = VisflyExtractor(space)
+    expected = 0
+    for key, sub in space.spaces.items():
+        expected += 128 if len(sub.shape) == 3 else 64 * (sub.shape[0] if len(sub.shape) == 2 else 1)
+    assert ext.features_dim == expected
+    out = ext({k: torch.as_tensor(v) for k, v in obs.items()})
+    assert out.shape == (num_envs, expected) and torch.isfinite(out).all()

@@ -37,7 +37,7 @@ import numpy as np
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
 from visfly_dist.aggregator.pool import BatchTimings, Reply, WorkerPool
-from visfly_dist.errors import ConfigError, NoWorkersError, RemoteError
+from visfly_dist.errors import ConfigError, NoWorkersError, ProtocolError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene
 
@@ -293,14 +293,29 @@ class Aggregator:
                 redo += by_worker[reply.worker_id]
             else:
                 worker_timings.append(dict(reply.message.get("timings", {})))
-                for scene in reply.message["scenes"]:
-                    results[int(scene["scene_key"][1:])] = scene
+                got = {scene.get("scene_key"): scene for scene in reply.message.get("scenes", [])}
+                for s in by_worker[reply.worker_id]:
+                    results[s] = self._checked(reply.worker_id, got.get(self._slots[s].key), s, len(positions[s]))
         if redo:
             self._place_orphans()
             more, more_timings = self._step_slots(redo, positions, rows, timings, retry_unknown=False)
             results.update(more)
             worker_timings += more_timings
         return results, worker_timings
+
+    def _checked(self, wid: str, scene: dict | None, slot: int, n: int) -> dict:
+        """A worker's result for one slot, checked against what was asked (ProtocolError if not)."""
+        if scene is None:
+            raise ProtocolError(f"worker {wid!r} sent no result for scene key {self._slots[slot].key!r}")
+        images = scene.get("images") or {}
+        arrays = [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in self.cameras]
+        arrays += [(key, scene.get(key), shape) for key, shape in
+                   (("collision", (n,)), ("inside", (n,)), ("nearest", (n, 3)), ("distance", (n,)))]
+        for name, value, shape in arrays:
+            if not isinstance(value, np.ndarray) or value.shape != shape:
+                got = getattr(value, "shape", type(value).__name__)
+                raise ProtocolError(f"worker {wid!r} sent {name} of shape {got} for slot {slot}; expected {shape}")
+        return scene
 
     def _assemble(self, agents: np.ndarray, rows: np.ndarray, positions: dict[int, np.ndarray],
                   results: dict[int, dict]) -> Observation:
@@ -317,7 +332,6 @@ class Aggregator:
                 continue
             for cam in self.cameras:
                 img = res["images"][cam.name]
-                assert img.shape == (len(pos), *cam.shape), f"worker sent {cam.name} of shape {img.shape}"
                 out["images"][cam.name][pos] = img
                 self._last["images"][cam.name][idx] = img
             for key in ("collision", "inside", "nearest", "distance"):

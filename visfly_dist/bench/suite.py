@@ -76,53 +76,61 @@ PRESETS: dict[str, Sizes] = {
 
 # -- sections --------------------------------------------------------------------------------------
 
-def section_physics(sizes: Sizes) -> dict[str, Any]:
+def section_physics(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     from visfly_dist.bench.physics import bench_physics
 
-    rows = bench_physics(agents=list(sizes.physics_agents), modes=list(sizes.physics_modes),
-                         grads=list(sizes.physics_grads), device="cpu", steps=sizes.physics_steps)
+    rows = []
+    for mode in sizes.physics_modes:
+        for grad in sizes.physics_grads:
+            log(f"[bench all] physics: {mode}, grad={grad}, agents {list(sizes.physics_agents)}")
+            rows += bench_physics(agents=list(sizes.physics_agents), modes=[mode], grads=[grad], device="cpu",
+                                  steps=sizes.physics_steps)
     return {"rows": rows}
 
 
-def section_render(sizes: Sizes) -> dict[str, Any]:
+def section_render(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     from visfly_dist.bench.render import bench_render
 
     rows = bench_render(backends=None, res=list(sizes.render_res), kinds=list(sizes.render_kinds),
-                        cameras=sizes.render_cameras, reps=sizes.render_reps)
+                        cameras=sizes.render_cameras, reps=sizes.render_reps, log=log)
     return {"rows": rows}
 
 
-def section_end_to_end(sizes: Sizes) -> dict[str, Any]:
+def section_end_to_end(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     from visfly_dist.bench.step import bench_step
 
     rows = []
     for shm in sizes.step_shm:
         rows += bench_step(agents=sizes.step_agents, workers=list(sizes.step_workers), res=sizes.step_res,
-                           shm=shm, steps=sizes.step_steps)
+                           shm=shm, steps=sizes.step_steps, log=log)
     return {"rows": rows}
 
 
-def section_scaling(sizes: Sizes) -> dict[str, Any]:
+def section_scaling(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     from visfly_dist.bench.step import bench_step
 
     rows = []
     for scenes in sizes.scaling_scenes:
         rows += bench_step(agents=sizes.step_agents, workers=list(sizes.scaling_workers), res=sizes.step_res,
-                           scenes=scenes, steps=sizes.scaling_steps)
+                           scenes=scenes, steps=sizes.scaling_steps, log=log)
     return {"rows": rows}
 
 
-def section_peer(sizes: Sizes) -> dict[str, Any]:
+def section_peer(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     from visfly_dist.bench.peer import peer_depth, peer_physics
     from visfly_dist.scenes import generate_scene
 
     scene = generate_scene("garage-stones", seed=0)
+    log(f"[bench all] peer: pybullet physics, {sizes.peer_drones} drones, {sizes.peer_seconds} s simulated")
     physics = peer_physics(sizes.peer_drones, sizes.peer_seconds)
-    depth = [peer_depth(res, sizes.peer_cameras, scene, reps=sizes.peer_reps) for res in sizes.peer_res]
+    depth = []
+    for res in sizes.peer_res:
+        log(f"[bench all] peer: TinyRenderer depth {res}x{res}, {sizes.peer_cameras} cameras")
+        depth.append(peer_depth(res, sizes.peer_cameras, scene, reps=sizes.peer_reps))
     return {"physics": physics, "depth": depth}
 
 
-SECTION_FUNCS: dict[str, Callable[[Sizes], dict[str, Any]]] = {
+SECTION_FUNCS: dict[str, Callable[[Sizes, Callable[[str], None]], dict[str, Any]]] = {
     "physics": section_physics,
     "render": section_render,
     "end_to_end": section_end_to_end,
@@ -135,7 +143,7 @@ def run_section(name: str, sizes: Sizes, log: Callable[[str], None]) -> dict[str
     """Run one section; a failure becomes ``{"status": "error", "error": ...}`` instead of an exception."""
     watch = Stopwatch()
     try:
-        out = SECTION_FUNCS[name](sizes)
+        out = SECTION_FUNCS[name](sizes, log)
         out = {"status": "ok", **out}
     except ModuleNotFoundError as exc:
         out = {"status": "error", "error": f"missing dependency: {exc}", "traceback": traceback.format_exc()}
