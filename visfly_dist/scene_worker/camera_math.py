@@ -50,6 +50,18 @@ def camera_world_poses(poses: np.ndarray, camera: CameraSpec) -> tuple[np.ndarra
     return origins, body @ quat_to_matrix(np.asarray(camera.rotation))
 
 
+def pixel_slopes(camera: CameraSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Tangents of the pixel centres' angles off the optical axis.
+
+    Returns:
+        ``(right (W,), down (H,))`` float64: column ``j``'s ray goes ``right[j]`` towards image right
+        (body -y) and row ``i``'s ray ``down[i]`` towards image bottom (body -z) per unit of depth.
+    """
+    f = camera.focal_px
+    return ((np.arange(camera.width) + 0.5 - 0.5 * camera.width) / f,
+            (np.arange(camera.height) + 0.5 - 0.5 * camera.height) / f)
+
+
 def pixel_rays(camera: CameraSpec) -> np.ndarray:
     """Ray directions through every pixel centre, in the camera frame.
 
@@ -59,10 +71,7 @@ def pixel_rays(camera: CameraSpec) -> np.ndarray:
     Returns:
         ``(H * W, 3)`` float64, row-major over ``(row, column)``.
     """
-    f = camera.focal_px
-    cols = (np.arange(camera.width) + 0.5 - 0.5 * camera.width) / f
-    rows = (np.arange(camera.height) + 0.5 - 0.5 * camera.height) / f
-    right, down = np.meshgrid(cols, rows)
+    right, down = np.meshgrid(*pixel_slopes(camera))
     return np.stack([np.ones(right.size), -right.ravel(), -down.ravel()], axis=-1)
 
 

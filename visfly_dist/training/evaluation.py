@@ -37,6 +37,7 @@ class EvalStats:
         collisions: episodes that ended in a collision.
         out_of_bounds: episodes that ended by leaving the flight box.
         video_frames: frames written to the video (0 without one).
+        video_episode_length: length of the filmed episode, steps (0 without a video).
     """
 
     episodes: int
@@ -46,6 +47,7 @@ class EvalStats:
     collisions: int
     out_of_bounds: int
     video_frames: int = 0
+    video_episode_length: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -94,7 +96,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     results: list[tuple[bool, float, int, bool, bool]] = []
     filming = recorder is not None
     obs = env.reset()
-    step, ret = 0, 0.0
+    step, ret, filmed_length = 0, 0.0, 0
     while len(results) < episodes:
         if filming:
             recorder.add(obs, f"step {step}  return {ret:.2f}")
@@ -106,7 +108,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
         for i in np.flatnonzero(dones):
             info = infos[i]
             if filming and i == recorder.agent:
-                filming = False
+                filming, filmed_length = False, int(info["episode"]["l"])
             if counted[i] < quota and len(results) < episodes:
                 counted[i] += 1
                 ep = info["episode"]
@@ -121,6 +123,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
         collisions=int(arr[:, 3].sum()),
         out_of_bounds=int(arr[:, 4].sum()),
         video_frames=len(recorder.frames) if recorder is not None else 0,
+        video_episode_length=filmed_length,
     )
 
 

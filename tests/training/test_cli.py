@@ -1,0 +1,108 @@
+"""``visfly-dist train`` and ``visfly-dist eval`` as a user runs them: subprocesses, tiny budgets."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import imageio.v2 as imageio
+import pytest
+
+CLI = [sys.executable, "-m", "visfly_dist.cli"]
+TINY = ["--num-envs", "4", "--workers", "1", "--n-steps", "32", "--batch-size", "64", "--set", "max_episode_steps=20"]
+
+
+def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("runs") / "hover-tiny"
+    proc = run_cli("train", "hover", "--timesteps", "512", "--checkpoint-every", "256", "--out", str(out), *TINY)
+    assert proc.returncode == 0, proc.stderr
+    assert '"task": "hover"' in proc.stdout  # the full config is printed
+    return out
+
+
+def test_train_writes_config_checkpoints_logs_and_curve(trained_run: Path) -> None:
+    config = json.loads((trained_run / "config.json").read_text())
+    assert config["task"] == "hover" and config["num_envs"] == 4 and config["overrides"] == {"max_episode_steps": 20}
+    assert (trained_run / "final.zip").is_file() and (trained_run / "final.norm.npz").is_file()
+    assert sorted(p.name for p in (trained_run / "checkpoints").glob("*.zip")) == ["step_256.zip", "step_512.zip"]
+    assert list(trained_run.glob("events.out.tfevents.*"))
+    with (trained_run / "success_curve.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    # 20-step episodes: every rollout of 4 x 32 steps ends episodes, so each gets a row.
+    assert [int(r["timesteps"]) for r in rows] == [128, 256, 384, 512]
+    assert all(0.0 <= float(r["success_rate"]) <= 1.0 and float(r["mean_length"]) <= 20 for r in rows)
+    assert (trained_run / "success_curve.png").stat().st_size > 1000
+
+
+def test_eval_reports_and_writes_a_gif_of_the_first_episode(trained_run: Path, tmp_path: Path) -> None:
+    gif, report = tmp_path / "hover.gif", tmp_path / "eval.json"
+    proc = run_cli("eval", "hover", "--checkpoint", str(trained_run / "final.zip"), "--episodes", "4", "--num-envs", "2",
+                   "--workers", "1", "--deterministic", "--video", str(gif), "--json", str(report))
+    assert proc.returncode == 0, proc.stderr
+    assert "success rate" in proc.stdout and "collisions" in proc.stdout
+    stats = json.loads(report.read_text())
+    assert stats["episodes"] == 4 and 1 <= stats["mean_length"] <= 20
+    frames = imageio.mimread(gif)
+    # One frame per step of agent 0's first episode (the settings of the run: 20-step episodes).
+    assert len(frames) == stats["video_frames"] == stats["video_episode_length"]
+    assert 1 <= len(frames) <= 20 and frames[0].shape[:2] == (192, 192)
+
+
+def test_bad_task_and_bad_setting_exit_2_with_one_line(tmp_path: Path) -> None:
+    proc = run_cli("train", "hovr", "--out", str(tmp_path / "x"))
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["visfly-dist train: error: unknown task 'hovr'; valid tasks: "
+                                                "navigation, hover, landing, gap_crossing, racing"]
+    proc = run_cli("train", "hover", "--set", "max_episod_steps=20", "--out", str(tmp_path / "x"))
+    assert proc.returncode == 2 and "max_episod_steps" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    proc = run_cli("train", "hover", "--set", "pool={\"workerz\": 1}", "--out", str(tmp_path / "x"))
+    assert proc.returncode == 2 and "unknown pool setting(s) ['workerz']" in proc.stderr
+    assert not (tmp_path / "x").exists()
+
+
+def children(pid: int) -> list[int]:
+    path = Path(f"/proc/{pid}/task/{pid}/children")
+    return [int(p) for p in path.read_text().split()] if path.exists() else []
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = Path(f"/proc/{pid}/stat")
+    return stat.exists() and stat.read_text().split(")")[-1].split()[0] != "Z"
+
+
+def test_ctrl_c_saves_the_model_and_stops_the_workers(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    proc = subprocess.Popen([*CLI, "train", "hover", "--timesteps", "10000000", "--out", str(out), *TINY],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while not (out / "success_curve.csv").exists() or len((out / "success_curve.csv").read_text().splitlines()) < 2:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() is not None else "timeout"
+            time.sleep(0.2)
+        workers = children(proc.pid)
+        assert workers, "the run should have spawned its scene worker"
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, stderr
+    assert "interrupted at" in stderr
+    assert (out / "final.zip").is_file() and (out / "success_curve.png").is_file()
+    assert not [pid for pid in workers if alive(pid)]
