@@ -18,7 +18,8 @@ def queries() -> ObstacleQueries:
     """A closed 2 m cube centred on the origin and an open floor plane at z = -3."""
     cube = trimesh.creation.box((2.0, 2.0, 2.0))
     floor = trimesh.Trimesh([[-10, -10, -3], [10, -10, -3], [10, 10, -3], [-10, 10, -3]], [[0, 1, 2], [0, 2, 3]])
-    scene = Scene("q", [SceneObject("cube", 1, cube), SceneObject("floor", 2, floor)], np.array([[-9, -9, -2.9], [9, 9, 9]]))
+    objects = [SceneObject("cube", 1, cube), SceneObject("floor", 2, floor)]
+    scene = Scene("q", objects, np.array([[-9, -9, -2.9], [9, 9, 9]]))
     return ObstacleQueries(scene, drone_radius=RADIUS)
 
 

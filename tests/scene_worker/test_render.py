@@ -105,7 +105,8 @@ def test_image_up_is_body_z_and_image_right_is_body_minus_y(backend):
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_misses_give_far_nothing_and_sky(backend):
     behind = box((1, 1, 1), (-5, 0, 0))
-    cams = [CameraSpec("d", "depth", 8, 6, far=15.0), CameraSpec("s", "segmentation", 8, 6), CameraSpec("c", "rgb", 8, 6)]
+    cams = [CameraSpec("d", "depth", 8, 6, far=15.0), CameraSpec("s", "segmentation", 8, 6),
+            CameraSpec("c", "rgb", 8, 6)]
     out = render(backend, scene_of(behind), cams, IDENTITY)
     assert np.all(out["d"] == 15.0)
     assert out["s"].dtype == np.uint16 and np.all(out["s"] == 0)
@@ -134,7 +135,8 @@ def test_red_box_is_red(backend):
 def test_segmentation_ids_are_exact_including_high_ids(backend):
     left = box((0.2, 2, 2), (3, 1.2, 0))
     right = box((0.2, 2, 2), (3, -1.2, 0))
-    seg = render(backend, scene_of(left, right, ids=[5, 40000]), [CameraSpec("s", "segmentation", 32, 16)], IDENTITY)["s"][0, 0]
+    cam = CameraSpec("s", "segmentation", 32, 16)
+    seg = render(backend, scene_of(left, right, ids=[5, 40000]), [cam], IDENTITY)["s"][0, 0]
     assert set(np.unique(seg)) == {0, 5, 40000}
     assert np.all(seg[8, 5:13] == 5) and np.all(seg[8, 19:27] == 40000)
 
@@ -171,6 +173,8 @@ def test_bad_input_is_refused_with_the_reason():
             r.render(np.zeros(3))
         with pytest.raises(ConfigError, match="NaN"):
             r.render(np.full((1, 7), np.nan))
+    with pytest.raises(ConfigError, match="renderer was closed"):
+        r.render(IDENTITY)
     with pytest.raises(ConfigError, match="backend='vulkan' must be one of"):
         make_renderer("vulkan", scene, [CameraSpec()])
     with pytest.raises(ConfigError, match="unique"):
@@ -183,3 +187,12 @@ def test_auto_backend_picks_raycast_for_depth_and_egl_for_rgb():
     name, reason = choose_backend("auto", [*depth_only, CameraSpec("c", "rgb")])
     assert (name, reason) == ("egl", "an RGB camera asks for full materials and textures")
     assert resolve_backend("egl", depth_only) == "egl"
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_drone_whose_centre_is_outside_the_view_still_shows_its_edge(backend):
+    empty = scene_of(box((1, 1, 1), (0, 0, -30)))
+    cam = CameraSpec("s", "segmentation", 201, 201)          # 90 deg: the left edge plane is y = x
+    poses = np.array([[0.0, 0, 0, 1, 0, 0, 0], [2.0, 2.08, 0, 1, 0, 0, 0]])
+    seg = render(backend, empty, [cam], poses, show_drones=True)["s"][0, 0]
+    assert (seg[:, 0] == 65534).any() and (seg[:, 3:] == 0).all()

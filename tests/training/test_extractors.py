@@ -42,7 +42,7 @@ def test_visfly_cnn_flatten_size_is_analytic() -> None:
     # 64 -conv5-> 60 -pool-> 30 -conv3-> 28 -pool-> 14 -conv3-> 12 -pool-> 6; 18 channels
     assert visfly_cnn(1)(torch.zeros(1, 1, 64, 64)).shape == (1, 18 * 6 * 6)
     ext = VisflyExtractor(dict_space(depth=DEPTH))
-    assert ext.encoders["depth"][2].in_features == 18 * 6 * 6
+    assert ext.encoders["depth"].head[0].in_features == 18 * 6 * 6
 
 
 def test_depth_is_normalised_by_far_and_rgb_by_255() -> None:
@@ -52,7 +52,8 @@ def test_depth_is_normalised_by_far_and_rgb_by_255() -> None:
     log = ImageNormalizer(DEPTH, depth_scale="log")
     assert math.isclose(float(log(torch.full((1, 1, 1, 1), 5.0))), math.log1p(5.0) / math.log1p(20.0), rel_tol=1e-6)
     rgb = ImageNormalizer(RGB)
-    assert torch.allclose(rgb(torch.tensor([0, 51, 255], dtype=torch.uint8)), torch.tensor([0.0, 0.2, 1.0]))
+    pixel = torch.tensor([0, 51, 255], dtype=torch.uint8).reshape(1, 3, 1, 1)
+    assert torch.allclose(rgb(pixel).flatten(), torch.tensor([0.0, 0.2, 1.0]))
 
 
 def test_policy_kwargs_build_an_sb3_policy_that_acts() -> None:

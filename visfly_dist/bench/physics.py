@@ -73,8 +73,11 @@ def bench_one(agents: int, mode: str, grad: bool, device: str = "cpu", steps: in
 
 
 def bench_physics(agents: Sequence[int], modes: Sequence[str] = MODES, grads: Sequence[bool] = (False, True),
-                  device: str = "cpu", steps: int = 100, verbose: bool = False) -> list[dict]:
+                  device: str = "cpu", steps: int = 100, verbose: bool = False, threads: int | None = 1) -> list[dict]:
     """One row per (agents, mode, grad); see ``bench_one``.
+
+    ``threads`` sets torch's intra-op threads for the run (restored after; None keeps them): the
+    ops here last microseconds, and extra threads only add contention on a shared machine.
 
     Raises:
         ConfigError: an unknown mode, or agents/steps < 1.
@@ -85,13 +88,18 @@ def bench_physics(agents: Sequence[int], modes: Sequence[str] = MODES, grads: Se
     if steps < 1 or any(n < 1 for n in agents):
         raise ConfigError(f"steps={steps} and agents={list(agents)} must be >= 1")
     rows = []
-    for mode in modes:
-        for grad in grads:
-            for n in agents:
-                row = bench_one(n, mode, grad, device, steps)
-                if verbose:
-                    print(_format_row(row), flush=True)
-                rows.append(row)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads or previous)
+    try:
+        for mode in modes:
+            for grad in grads:
+                for n in agents:
+                    row = bench_one(n, mode, grad, device, steps)
+                    if verbose:
+                        print(_format_row(row), flush=True)
+                    rows.append(row)
+    finally:
+        torch.set_num_threads(previous)
     return rows
 
 
@@ -125,7 +133,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    torch.set_num_threads(args.threads)
     agents = args.agents or ([100, 1000] if args.quick else [100, 1000, 10000])
     steps = args.steps or (20 if args.quick else 100)
     modes = ["eager"] if args.no_compile else args.modes
@@ -133,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"physics: CTBR, ctrl_dt {CTRL_DT}, sim_dt {SIM_DT}, RK4, motor lag; device {args.device}, "
           f"{steps} steps, {args.threads} thread(s)")
     print(HEADER)
-    rows = bench_physics(agents, modes, grads, args.device, steps, verbose=True)
+    rows = bench_physics(agents, modes, grads, args.device, steps, verbose=True, threads=args.threads)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"benchmark": "physics", "rows": rows}, indent=2))

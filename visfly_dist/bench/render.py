@@ -156,8 +156,6 @@ def _worker_unavailable() -> str | None:
 def _bench_worker(backend: str, res: Sequence[int], kinds: Sequence[str], poses: np.ndarray, scene: str, seed: int,
                   reps: int, log: Callable[[str], None]) -> list[dict[str, Any]]:
     """Rows measured through one worker process of ``backend``; none (and a message) if it can't start."""
-    from visfly_dist.bench.common import time_it
-    from visfly_dist.protocol.messages import LoadScene, ScenePoses, StepRequest, UnloadScene
     from visfly_dist.protocol.session import client_of, open_session
 
     rows = []
@@ -168,18 +166,30 @@ def _bench_worker(backend: str, res: Sequence[int], kinds: Sequence[str], poses:
                 for r in res:
                     for kind in kinds:
                         cam = CameraSpec(name=kind, kind=kind, width=r, height=r)
-                        key = f"{kind}{r}"
-                        _call(session, rpc_key, LoadScene(key, f"gen:{scene}?seed={seed}", (cam,), DRONE_RADIUS).to_message())
-                        step = StepRequest((ScenePoses(key, poses),), render=True, query=False).to_message()
-                        t = time_it(lambda: _call(session, rpc_key, step), reps=reps, warmup=1)
-                        _call(session, rpc_key, UnloadScene(key).to_message())
-                        rows.append(_row(backend, r, kind, len(poses), t.median, "worker"))
-                        log(f"[bench render] {backend} {kind} {r}x{r} via worker: {rows[-1]['frames_per_s']:.1f} frames/s")
+                        seconds = _time_worker_render(session, rpc_key, cam, poses, f"gen:{scene}?seed={seed}", reps)
+                        rows.append(_row(backend, r, kind, len(poses), seconds, "worker"))
+                        log(f"[bench render] {backend} {kind} {r}x{r} via worker: "
+                            f"{rows[-1]['frames_per_s']:.1f} frames/s")
             finally:
                 session.close()
     except (RuntimeError, TransportTimeoutError, RemoteError) as exc:
         log(f"[bench render] skipping the {backend} worker rows: {exc}")
     return rows
+
+
+def _time_worker_render(session: Any, rpc_key: str, cam: CameraSpec, poses: np.ndarray, source: str,
+                        reps: int) -> float:
+    """Median seconds of a render-only StepRequest of ``poses`` in a scene loaded for ``cam``."""
+    from visfly_dist.bench.common import time_it
+    from visfly_dist.protocol.messages import LoadScene, ScenePoses, StepRequest, UnloadScene
+
+    key = f"{cam.kind}{cam.width}"
+    _call(session, rpc_key, LoadScene(key, source, (cam,), DRONE_RADIUS).to_message())
+    step = StepRequest((ScenePoses(key, poses),), render=True, query=False).to_message()
+    try:
+        return time_it(lambda: _call(session, rpc_key, step), reps=reps, warmup=1).median
+    finally:
+        _call(session, rpc_key, UnloadScene(key).to_message())
 
 
 @contextmanager
@@ -192,7 +202,8 @@ def _worker_process(backend: str) -> Iterator[tuple[str, str]]:
     with tempfile.TemporaryDirectory() as root, tempfile.TemporaryFile() as err:
         argv = [sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", run_id, "--listen", endpoint,
                 "--scene-root", root, "--backend", backend, "--worker-id", worker_id, "--parent-pid", str(os.getpid())]
-        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err, start_new_session=True)
+        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err,
+                                start_new_session=True)
         try:
             with selectors.DefaultSelector() as sel:
                 sel.register(proc.stdout, selectors.EVENT_READ)
@@ -247,7 +258,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default="garage-stones", help="scene generator")
     parser.add_argument("--seed", type=int, default=0, help="scene and pose seed")
     parser.add_argument("--reps", type=int, default=3, help="timed calls per figure (median)")
-    parser.add_argument("--quick", action="store_true", help=f"one timed call per figure, at most {QUICK_AGENTS} drones")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"one timed call per figure, at most {QUICK_AGENTS} drones")
     parser.add_argument("--no-worker", dest="worker", action="store_false", help="skip the through-a-worker rows")
     parser.add_argument("--search-radius", type=float, default=5.0, help="obstacle query search radius, metres")
     parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")

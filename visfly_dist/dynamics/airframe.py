@@ -123,28 +123,33 @@ class Airframe:
         length("drag_linear", self.drag_linear, 3)
         length("drag_area", self.drag_area, 3)
         length("thrust_coeffs", self.thrust_coeffs, 3)
-        lo, hi = (float(x) for x in self.rotor_speed_range)
+        lo, hi = (_float(x) for x in self.rotor_speed_range)
         if not 0 <= lo < hi:
             out.append(f"rotor_speed_range={_show(self.rotor_speed_range)} must be 0 <= min < max")
         elif len(out) == 0:
-            a, b, _ = (float(x) for x in self.thrust_coeffs)
+            a, b, _ = (_float(x) for x in self.thrust_coeffs)
             if a < 0 or 2 * a * lo + b <= 0:
                 out.append(f"thrust_coeffs={_show(self.thrust_coeffs)} must give thrust increasing "
                            f"with rotor speed over {_show(self.rotor_speed_range)}")
-            elif 4 * self.thrust(hi) <= 9.81 * float(self.mass):
+            elif 4 * self.thrust(hi) <= 9.81 * _float(self.mass):
                 out.append(f"max thrust 4*T({hi})={4 * self.thrust(hi):.3f} N cannot lift "
-                           f"mass={float(self.mass)} kg")
+                           f"mass={_float(self.mass)} kg")
         return out
 
     def thrust(self, rotor_speed: float) -> float:
         """Thrust of one rotor at ``rotor_speed`` rad/s, in newtons (plain float)."""
-        a, b, c = (float(x) for x in self.thrust_coeffs)
+        a, b, c = (_float(x) for x in self.thrust_coeffs)
         return a * rotor_speed**2 + b * rotor_speed + c
 
     @property
     def max_rotor_thrust(self) -> float:
         """Thrust of one rotor at its top speed, N."""
-        return self.thrust(float(self.rotor_speed_range[1]))
+        return self.thrust(_float(self.rotor_speed_range[1]))
+
+
+def _float(value: Number) -> float:
+    """A plain float of a number or one-element tensor (outside any autograd graph)."""
+    return float(value.detach()) if isinstance(value, torch.Tensor) else float(value)
 
 
 def _show(value: Any) -> str:

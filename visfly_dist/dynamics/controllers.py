@@ -70,8 +70,8 @@ class SingleRotorThrust(Controller):
         return setpoint[0]
 
     def hover_action(self) -> list[float]:
-        hover = float(self.model.mass) * GRAVITY / 4
-        return [2 * hover / float(self.model.thrust_max) - 1] * 4
+        hover = float(self.model.mass.detach()) * GRAVITY / 4
+        return [2 * hover / float(self.model.thrust_max.detach()) - 1] * 4
 
 
 class CollectiveThrustBodyRate(Controller):

@@ -72,7 +72,8 @@ class RigidBodyModel:
     """Constants and equations of motion of one airframe, for ``(k, N)`` component-major tensors.
 
     Args:
-        airframe: physical parameters (floats or tensors; tensors keep their autograd graph).
+        airframe: physical parameters (floats or tensors; tensors keep their autograd graph; give a
+            vector parameter as one tensor, not a list of tensors).
         motor_lag: integrate the rotor lag; otherwise rotor speeds are set to their command.
         wind: None, (3,) or (N, 3) world wind, m/s.
         device: torch device.
@@ -90,10 +91,8 @@ class RigidBodyModel:
         inertia = t(airframe.inertia).reshape(3)
         a, b, c = (t(k) for k in airframe.thrust_coeffs)
         self.thrust_a, self.thrust_b, self.thrust_c = a, b, c
-        self.rotor_min = t(float(airframe.rotor_speed_range[0]))
-        self.rotor_max = t(float(airframe.rotor_speed_range[1]))
-        self.thrust_min = self.thrust(self.rotor_min)
-        self.thrust_max = self.thrust(self.rotor_max)
+        rotor_min, rotor_max = (t(float(w)) for w in airframe.rotor_speed_range)
+        self.thrust_min, self.thrust_max = self.thrust(rotor_min), self.thrust(rotor_max)
         self.mass = mass
 
         d = t(airframe.arm_length) / 2**0.5
@@ -122,7 +121,7 @@ class RigidBodyModel:
         self.unit_z = t((0.0, 0.0, 1.0)).reshape(3, 1)
         self.motor_lag = motor_lag
         self.inv_motor_tau = 1.0 / t(airframe.motor_time_constant) if motor_lag else t(0.0)
-        self.wind = None if wind is None else wind.to(dtype=dtype, device=device).reshape(-1, 3).T
+        self.wind = None if wind is None else wind.to(dtype=dtype, device=device).reshape(-1, 3).T.contiguous()
 
     # --- pieces -------------------------------------------------------------------------------
 

@@ -100,6 +100,7 @@ def plot_step_response(controller: str, response: dict[str, torch.Tensor], path:
 
 
 def run_step_response(args: argparse.Namespace) -> int:
+    torch.set_num_threads(1)            # tiny batches: a second thread only adds contention
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for controller in ("ps", "lv"):

@@ -75,6 +75,24 @@ def pixel_rays(camera: CameraSpec) -> np.ndarray:
     return np.stack([np.ones(right.size), -right.ravel(), -down.ravel()], axis=-1)
 
 
+def spheres_in_view(camera: CameraSpec, centres: np.ndarray, radius: float) -> np.ndarray:
+    """Whether spheres may show in the camera's image (conservative frustum test).
+
+    Args:
+        camera: intrinsics and clip planes.
+        centres: ``(..., 3)`` sphere centres in the camera frame.
+        radius: the spheres' radius.
+
+    Returns:
+        ``(...)`` bool: False only for spheres wholly outside the view frustum.
+    """
+    x, y, z = np.moveaxis(centres, -1, 0)
+    sw, sh = 0.5 * camera.width / camera.focal_px, 0.5 * camera.height / camera.focal_px
+    nw, nh = np.hypot(1.0, sw), np.hypot(1.0, sh)
+    return ((x + radius > camera.near) & (x - radius < camera.far)
+            & (sw * x - np.abs(y) >= -radius * nw) & (sh * x - np.abs(z) >= -radius * nh))
+
+
 def gl_camera_pose(origin: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """The 4x4 world pose of an OpenGL-convention camera (looks along -z) at our camera's pose."""
     pose = np.eye(4)

@@ -2,9 +2,10 @@
 
 pyrender draws one node per object with several uniform uploads each, which on llvmpipe costs more
 than the rasterising, and its depth buffer is 24-bit and multisampled. This pass draws the whole
-scene with one indexed draw call into a single-sample framebuffer (so every pixel is sampled at its
-centre) whose one ``RG32F`` attachment receives, per pixel, the eye-space z-depth computed in the
-fragment shader (exact in float32, no depth-buffer quantisation) and the object id.
+scene with one indexed draw call (and every drone with one instanced call) into a single-sample
+framebuffer, so every pixel is sampled at its centre. Its one ``RG32F`` attachment receives, per
+pixel, the eye-space z-depth computed in the fragment shader (exact in float32, no depth-buffer
+quantisation) and the object id.
 
 It needs a current OpenGL >= 3.3 core context (the caller's), and leaves the draw framebuffer bound.
 """
@@ -23,16 +24,15 @@ VERTEX_SHADER = """
 #version 330 core
 layout(location = 0) in vec3 position;
 layout(location = 1) in float object_id;
-uniform mat4 view;          // world -> OpenGL eye frame
+layout(location = 2) in vec3 offset;    // per drone instance; the scene reads the constant 0
+uniform mat4 view;                      // world -> OpenGL eye frame
 uniform mat4 proj;
-uniform vec3 offset;        // translation of the mesh drawn (drones); zero for the scene
-uniform float id_override;  // >= 0: every vertex gets this id
 out float eye_depth;
 flat out float seg_id;
 void main() {
     vec4 eye = view * vec4(position + offset, 1.0);
     eye_depth = -eye.z;
-    seg_id = id_override >= 0.0 ? id_override : object_id;
+    seg_id = object_id;
     gl_Position = proj * eye;
 }
 """
@@ -60,31 +60,53 @@ def projection(camera: CameraSpec) -> np.ndarray:
 
 
 class _Geometry:
-    """An indexed triangle mesh in a vertex array: positions and a per-vertex id."""
+    """An indexed triangle mesh in a vertex array: positions and a per-vertex id, or (``instanced``)
+    positions only, drawn once per instance with an ``(offset, id)`` from an instance buffer."""
 
-    def __init__(self, vertices: np.ndarray, ids: np.ndarray, faces: np.ndarray) -> None:
-        data = np.concatenate([vertices, ids[:, None]], axis=1).astype(np.float32)
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray | None) -> None:
+        instanced = ids is None
+        data = np.ascontiguousarray(vertices if instanced else np.concatenate([vertices, ids[:, None]], axis=1),
+                                    dtype=np.float32)
+        stride = data.shape[1] * 4
         self.count = int(faces.size)
         self.vao = GL.glGenVertexArrays(1)
-        self.vbo, self.ebo = GL.glGenBuffers(2)
+        self.vbo, self.ebo, self.instances = GL.glGenBuffers(3)
         GL.glBindVertexArray(self.vao)
         GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self.vbo)
         GL.glBufferData(GL.GL_ARRAY_BUFFER, data.nbytes, data, GL.GL_STATIC_DRAW)
         GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, self.ebo)
-        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, faces.nbytes, np.ascontiguousarray(faces, np.uint32), GL.GL_STATIC_DRAW)
+        indices = np.ascontiguousarray(faces, np.uint32)
+        GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, indices.nbytes, indices, GL.GL_STATIC_DRAW)
         GL.glEnableVertexAttribArray(0)
-        GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, 16, ctypes.c_void_p(0))
-        GL.glEnableVertexAttribArray(1)
-        GL.glVertexAttribPointer(1, 1, GL.GL_FLOAT, GL.GL_FALSE, 16, ctypes.c_void_p(12))
+        GL.glVertexAttribPointer(0, 3, GL.GL_FLOAT, GL.GL_FALSE, stride, ctypes.c_void_p(0))
+        if instanced:   # offset xyz and id per instance
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self.instances)
+            GL.glEnableVertexAttribArray(2)
+            GL.glVertexAttribPointer(2, 3, GL.GL_FLOAT, GL.GL_FALSE, 16, ctypes.c_void_p(0))
+            GL.glVertexAttribDivisor(2, 1)
+            GL.glEnableVertexAttribArray(1)
+            GL.glVertexAttribPointer(1, 1, GL.GL_FLOAT, GL.GL_FALSE, 16, ctypes.c_void_p(12))
+            GL.glVertexAttribDivisor(1, 1)
+        else:
+            GL.glEnableVertexAttribArray(1)
+            GL.glVertexAttribPointer(1, 1, GL.GL_FLOAT, GL.GL_FALSE, stride, ctypes.c_void_p(12))
         GL.glBindVertexArray(0)
 
-    def draw(self) -> None:
+    def draw(self, instances: np.ndarray | None = None) -> None:
+        """Draw once, or once per row ``[x, y, z, id]`` of ``instances``."""
         GL.glBindVertexArray(self.vao)
-        GL.glDrawElements(GL.GL_TRIANGLES, self.count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0))
+        if instances is None:
+            GL.glVertexAttrib3f(2, 0.0, 0.0, 0.0)   # the offset attribute is off: its constant
+            GL.glDrawElements(GL.GL_TRIANGLES, self.count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0))
+        elif len(instances):
+            data = np.ascontiguousarray(instances, dtype=np.float32)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, self.instances)
+            GL.glBufferData(GL.GL_ARRAY_BUFFER, data.nbytes, data, GL.GL_STREAM_DRAW)
+            GL.glDrawElementsInstanced(GL.GL_TRIANGLES, self.count, GL.GL_UNSIGNED_INT, ctypes.c_void_p(0), len(data))
 
     def delete(self) -> None:
         GL.glDeleteVertexArrays(1, [self.vao])
-        GL.glDeleteBuffers(2, [self.vbo, self.ebo])
+        GL.glDeleteBuffers(3, [self.vbo, self.ebo, self.instances])
 
 
 class DepthSegPass:
@@ -97,20 +119,20 @@ class DepthSegPass:
 
     def __init__(self, scene: Scene, drone: tuple[np.ndarray, np.ndarray] | None) -> None:
         self._program = _link(VERTEX_SHADER, FRAGMENT_SHADER)
-        self._uniforms = {name: GL.glGetUniformLocation(self._program, name)
-                          for name in ("view", "proj", "offset", "id_override")}
+        self._uniforms = {name: GL.glGetUniformLocation(self._program, name) for name in ("view", "proj")}
         objects = [o for o in scene.objects if len(o.mesh.faces)]
         self._scene = None
         if objects:
             starts = np.cumsum([0] + [len(o.mesh.vertices) for o in objects])
             self._scene = _Geometry(
                 np.concatenate([o.mesh.vertices for o in objects]),
-                np.concatenate([np.full(len(o.mesh.vertices), o.object_id, np.float32) for o in objects]),
-                np.concatenate([o.mesh.faces + s for o, s in zip(objects, starts)]))
-        self._drone = None if drone is None else _Geometry(drone[0], np.zeros(len(drone[0]), np.float32), drone[1])
+                np.concatenate([o.mesh.faces + s for o, s in zip(objects, starts)]),
+                np.concatenate([np.full(len(o.mesh.vertices), o.object_id, np.float32) for o in objects]))
+        self._drone = None if drone is None else _Geometry(drone[0], drone[1], None)
         self._targets: dict[tuple[int, int], tuple[int, int, int]] = {}
 
-    def draw(self, camera: CameraSpec, view: np.ndarray, drones: np.ndarray, drone_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def draw(self, camera: CameraSpec, view: np.ndarray, drones: np.ndarray,
+             drone_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Render one camera.
 
         Args:
@@ -137,15 +159,10 @@ class DepthSegPass:
         u = self._uniforms
         GL.glUniformMatrix4fv(u["view"], 1, GL.GL_TRUE, view.astype(np.float32))
         GL.glUniformMatrix4fv(u["proj"], 1, GL.GL_TRUE, projection(camera).astype(np.float32))
-        GL.glUniform3f(u["offset"], 0.0, 0.0, 0.0)
-        GL.glUniform1f(u["id_override"], -1.0)
         if self._scene is not None:
             self._scene.draw()
-        if self._drone is not None:
-            for centre, drone_id in zip(drones, drone_ids):
-                GL.glUniform3f(u["offset"], *(float(c) for c in centre))
-                GL.glUniform1f(u["id_override"], float(drone_id))
-                self._drone.draw()
+        if self._drone is not None and len(drones):
+            self._drone.draw(np.concatenate([drones, np.asarray(drone_ids)[:, None]], axis=1))
         GL.glBindVertexArray(0)
         GL.glBindFramebuffer(GL.GL_READ_FRAMEBUFFER, self._target(w, h)[0])
         GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import abc
 import ctypes.util
+import functools
 import importlib.util
 import logging
 from typing import Sequence
@@ -84,6 +85,7 @@ class Renderer(abc.ABC):
         self.scene = scene
         self.cameras = cameras
         self.drone_radius = float(drone_radius)
+        self._closed = False
 
     def render(self, poses: np.ndarray, show_drones: bool = False) -> dict[str, np.ndarray]:
         """Render every camera of every drone.
@@ -95,6 +97,8 @@ class Renderer(abc.ABC):
         Returns:
             ``{camera.name: (n, C, H, W) array of camera.dtype}``.
         """
+        if self._closed:
+            raise ConfigError(f"this {self.name} renderer was closed; make a new one with make_renderer")
         poses = np.asarray(poses, dtype=np.float64)
         if poses.ndim != 2 or poses.shape[1] != 7:
             raise ConfigError(f"poses shape {poses.shape} must be (n, 7): x y z qw qx qy qz")
@@ -115,6 +119,12 @@ class Renderer(abc.ABC):
 
     def close(self) -> None:
         """Free the backend's resources; idempotent."""
+        if not self._closed:
+            self._closed = True
+            self._release()
+
+    def _release(self) -> None:
+        """Backend clean-up, called once by :meth:`close`."""
 
     def __enter__(self) -> "Renderer":
         return self
@@ -126,6 +136,7 @@ class Renderer(abc.ABC):
         return max((o.object_id for o in self.scene.objects), default=0)
 
 
+@functools.lru_cache(maxsize=1)
 def available_backends() -> tuple[str, ...]:
     """The backends whose libraries are installed (cheap check; nothing is initialised)."""
     out = []
@@ -160,8 +171,9 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     if wants_rgb and "egl" in available:
         return "egl", "an RGB camera asks for full materials and textures"
     if "raycast" in available:
-        why = "RGB from face colours only (EGL unavailable)" if wants_rgb else "depth/segmentation only: raycast is exact and fastest"
-        return "raycast", why
+        if wants_rgb:
+            return "raycast", "RGB from face colours only (EGL unavailable)"
+        return "raycast", "depth/segmentation only: raycast is exact and fastest"
     return "egl", "raycast (embreex) unavailable"
 
 

