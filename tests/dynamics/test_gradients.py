@@ -73,7 +73,8 @@ def _rollout_loss(action0: torch.Tensor, vel0: torch.Tensor, mass: torch.Tensor,
 def test_fifty_step_rollout_gradient_matches_finite_differences():
     """Directional derivatives along random directions, by autograd and by central differences."""
     quad = Quadrotor(DynamicsConfig(controller="ctbr"), num_agents=N, dtype=F64)
-    action0 = quad.hover_action().expand(N, 4) + torch.tensor([[0.05, 0.2, -0.1, 0.1], [0.0, -0.3, 0.2, 0.0]], dtype=F64)
+    offsets = torch.tensor([[0.05, 0.2, -0.1, 0.1], [0.0, -0.3, 0.2, 0.0]], dtype=F64)
+    action0 = quad.hover_action().expand(N, 4) + offsets
     vel0 = torch.tensor([[0.5, -0.2, 0.1], [0.0, 0.3, -0.2]], dtype=F64)
     mass = torch.tensor(0.46, dtype=F64)
     point = (action0, vel0, mass)
@@ -83,7 +84,9 @@ def test_fifty_step_rollout_gradient_matches_finite_differences():
     eps = 1e-6
     for i, (x, grad) in enumerate(zip(point, grads)):
         direction = torch.randn(x.shape, generator=g, dtype=F64)
-        moved = lambda d: _rollout_loss(*(y + d * direction if k == i else y for k, y in enumerate(point)))  # noqa: E731
+        def moved(d: float) -> torch.Tensor:
+            return _rollout_loss(*(y + d * direction if k == i else y for k, y in enumerate(point)))
+
         fd = (moved(eps) - moved(-eps)) / (2 * eps)
         assert float((grad * direction).sum()) == pytest.approx(float(fd), rel=1e-5, abs=1e-8), i
 

@@ -121,7 +121,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--agents", type=int, nargs="+", default=None,
                         help="batch sizes (default 100 1000 10000; --quick: 100 1000)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
-    parser.add_argument("--steps", type=int, default=None, help="timed control steps per row (default 100; --quick: 20)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="timed control steps per row (default 100; --quick: 20)")
     parser.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES, help="eager and/or compiled")
     parser.add_argument("--no-compile", action="store_true", help="eager only (skip torch.compile)")
     parser.add_argument("--no-grad-rows", action="store_true", help="skip the rows with gradients")

@@ -77,15 +77,37 @@ PRESETS: dict[str, Sizes] = {
 # -- sections --------------------------------------------------------------------------------------
 
 def section_physics(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
+    """One ``bench_physics`` call per configuration, so that one failing configuration (a compiler
+    error, say) costs only its own row: it is kept as ``{"agents", "mode", "grad", "error"}``."""
+    import torch
+
     from visfly_dist.bench.physics import bench_physics
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     for mode in sizes.physics_modes:
         for grad in sizes.physics_grads:
-            log(f"[bench all] physics: {mode}, grad={grad}, agents {list(sizes.physics_agents)}")
-            rows += bench_physics(agents=list(sizes.physics_agents), modes=[mode], grads=[grad], device="cpu",
-                                  steps=sizes.physics_steps)
+            for agents in sizes.physics_agents:
+                watch = Stopwatch()
+                if mode == "compiled":
+                    # Each configuration compiles afresh (its compile time is its own), and compiled
+                    # variants of earlier configurations do not count against the recompile limit.
+                    torch.compiler.reset()
+                try:
+                    row = bench_physics(agents=[agents], modes=[mode], grads=[grad], device="cpu",
+                                        steps=sizes.physics_steps)[0]
+                except Exception as exc:  # noqa: BLE001  (recorded in the row; the other rows still count)
+                    row = {"agents": agents, "mode": mode, "grad": grad, "error": f"{type(exc).__name__}: {exc}"}
+                    log(f"[bench all] !! physics {mode} grad={grad} {agents} agents FAILED: {row['error'][:300]}")
+                rows.append(row)
+                log(f"[bench all] physics {mode} grad={grad} {agents} agents: "
+                    f"{fmt_rate(row.get('agent_steps_per_s'))} agent-steps/s ({watch.elapsed:.1f} s)")
+    if all("error" in r for r in rows):
+        raise RuntimeError(f"every physics configuration failed; first: {rows[0]['error']}")
     return {"rows": rows}
+
+
+def fmt_rate(value: float | None) -> str:
+    return "-" if value is None else f"{value:,.0f}"
 
 
 def section_render(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:

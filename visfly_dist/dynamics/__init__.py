@@ -1,4 +1,4 @@
-"""Batched, differentiable quadrotor dynamics in pure torch (no I/O, nothing else of visfly-dist).
+"""Batched, differentiable quadrotor dynamics in pure torch (no I/O; of visfly-dist only ``errors``).
 
     quad = Quadrotor(DynamicsConfig(controller="ctbr"), load_airframe("visfly"), num_agents=N)
     state = quad.initial_state(pos=...)

@@ -64,7 +64,8 @@ class DynamicsConfig:
         elif _ratio(self.ctrl_dt, self.sim_dt) is None:
             out.append(f"sim_dt={self.sim_dt} must divide ctrl_dt={self.ctrl_dt} into a whole number "
                        f"of substeps (e.g. sim_dt={self.ctrl_dt / max(1, round(self.ctrl_dt / self.sim_dt))})")
-        if self.action_delay_s < 0 or (self.ctrl_dt > 0 and _ratio(self.action_delay_s, self.ctrl_dt, allow_zero=True) is None):
+        delay_ok = self.ctrl_dt > 0 and _ratio(self.action_delay_s, self.ctrl_dt, allow_zero=True) is not None
+        if self.action_delay_s < 0 or not delay_ok:
             out.append(f"action_delay_s={self.action_delay_s} must be a non-negative multiple of "
                        f"ctrl_dt={self.ctrl_dt}")
         if len(tuple(self.position_origin)) != 3:

@@ -148,7 +148,7 @@ class GeometricController(Controller):
         thrust_vec = torch.cat((horizontal, vertical)) - self.model.gravity - drag
         collective = (thrust_vec * rot[:, 2]).sum(0, keepdim=True)
 
-        b3 = thrust_vec / thrust_vec.norm(dim=0, keepdim=True)
+        b3 = thrust_vec / thrust_vec.norm(dim=0, keepdim=True).clamp_min(1e-9)
         b2 = torch.linalg.cross(b3, heading, dim=0)
         b2 = b2 / b2.norm(dim=0, keepdim=True).clamp_min(1e-9)
         b1 = torch.linalg.cross(b2, b3, dim=0)

@@ -14,6 +14,7 @@ from visfly_dist.dynamics.state import QuadState
 from visfly_dist.errors import ConfigError
 
 Tensors = tuple[torch.Tensor, ...]
+RECOMPILE_LIMIT = 64
 
 
 class Quadrotor:
@@ -74,6 +75,11 @@ class Quadrotor:
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
         self._advance: Callable[..., Tensors] = self._advance_eager
         if config.compile:
+            # All instances share one code object, and each batch size, grad mode and
+            # requires-grad pattern of the inputs is its own specialisation of it: allow many more
+            # than dynamo's default of 8 (fullgraph makes running out a hard error, not a
+            # silent fall-back to eager).
+            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
             self._advance = torch.compile(self._advance_eager, fullgraph=True, dynamic=False)
 
     # --- states and actions -------------------------------------------------------------------

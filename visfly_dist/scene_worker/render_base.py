@@ -36,6 +36,8 @@ log = logging.getLogger(__name__)
 
 BACKENDS = ("raycast", "egl")
 BACKEND_CHOICES = ("auto", *BACKENDS)
+RAYCAST_MAX_PIXELS = 128 * 128
+"""``auto`` picks ``egl`` for depth/segmentation cameras larger than this (see :func:`choose_backend`)."""
 
 DRONE_SEGMENTATION_MAX = 65535
 SKY_RGB = (150, 180, 210)
@@ -150,9 +152,11 @@ def available_backends() -> tuple[str, ...]:
 def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, str]:
     """Resolve a backend request, with the reason.
 
-    ``auto`` takes the fastest backend able to give what the cameras ask for: ``raycast`` (exact
-    depth and segmentation, about 10x faster than llvmpipe) unless a camera is RGB, which gets
-    ``egl`` for full materials and textures when EGL is available.
+    ``auto`` takes the fastest backend able to give what the cameras ask for: ``egl`` when a camera
+    is RGB (full materials and textures) or larger than ``RAYCAST_MAX_PIXELS`` (rasterising costs
+    less per pixel than tracing), else ``raycast`` (exact depth and segmentation, and the cheaper
+    at small sizes). Measured on garage-stones, CPU time per frame: 64x64 depth raycast 0.63 ms,
+    egl (llvmpipe) 0.83 ms; 256x256 raycast 8.2 ms, egl 1.6 ms.
 
     Returns:
         ``(backend name, reason)``.
@@ -167,14 +171,16 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
         return requested, "requested"
     if not available:
         raise ConfigError("no render backend is available; install embreex (raycast) or pyrender + libEGL (egl)")
-    wants_rgb = any(c.kind == "rgb" for c in cameras)
-    if wants_rgb and "egl" in available:
-        return "egl", "an RGB camera asks for full materials and textures"
-    if "raycast" in available:
-        if wants_rgb:
-            return "raycast", "RGB from face colours only (EGL unavailable)"
-        return "raycast", "depth/segmentation only: raycast is exact and fastest"
-    return "egl", "raycast (embreex) unavailable"
+    if "egl" in available:
+        if any(c.kind == "rgb" for c in cameras):
+            return "egl", "an RGB camera asks for full materials and textures"
+        if any(c.width * c.height > RAYCAST_MAX_PIXELS for c in cameras):
+            return "egl", f"a camera has more than {RAYCAST_MAX_PIXELS} pixels: rasterising is cheaper there"
+    if "raycast" not in available:
+        return "egl", "raycast (embreex) unavailable"
+    if "egl" not in available:
+        return "raycast", "EGL unavailable (RGB, if asked for, from face colours only)"
+    return "raycast", "small depth/segmentation cameras: raycast is exact and fastest"
 
 
 def resolve_backend(requested: str, cameras: Sequence[CameraSpec]) -> str:

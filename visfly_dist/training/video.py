@@ -2,8 +2,8 @@
 
 Each frame is the agent's camera image (depth as grey levels, near = bright; RGB as is) next to a
 third-person view rendered in this process with the ``raycast`` renderer from a camera ``distance``
-metres behind and ``height`` metres above the drone, turned with the drone's yaw and pitched down to
-look at it; the drone is drawn as a dark sphere. The scene is rebuilt in-process from the source the
+metres behind and ``height`` metres above the drone (along the drone's yaw, kept inside the scene's
+bounds), looking at it; the drone is drawn as a dark sphere. The scene is rebuilt in-process from the source the
 agent's scene slot was loaded from (``gen:`` spec or a path under the pool's scene roots).
 
     recorder = VideoRecorder(env.unwrapped, agent=0)
@@ -29,18 +29,33 @@ PANEL = 192
 """Side of each square panel of a frame, pixels."""
 
 
-def chase_pose(pos: np.ndarray, quat: np.ndarray, distance: float, height: float) -> np.ndarray:
-    """Pose ``[x, y, z, qw, qx, qy, qz]`` of a camera behind and above ``pos``, looking at it.
+def look_at_pose(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Pose ``[x, y, z, qw, qx, qy, qz]`` of a camera at ``eye`` whose optical axis points at ``target``."""
+    d = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
+    yaw = math.atan2(d[1], d[0])
+    pitch = math.atan2(-d[2], math.hypot(d[0], d[1]))  # positive looks down
+    cy, sy, cp, sp = math.cos(yaw / 2), math.sin(yaw / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    # q_yaw (about z) * q_pitch (about y)
+    return np.array([*eye, cy * cp, -sy * sp, cy * sp, sy * cp])
 
-    The camera takes the drone's yaw (from ``quat``, wxyz) and pitches down by ``atan2(height, distance)``.
+
+def chase_pose(pos: np.ndarray, quat: np.ndarray, distance: float, height: float,
+               bounds: np.ndarray | None = None, margin: float = 0.3) -> np.ndarray:
+    """Pose of a camera ``distance`` behind (along the drone's yaw) and ``height`` above ``pos``, looking at it.
+
+    With ``bounds`` (``(2, 3)``), the camera is kept ``margin`` inside them (so it stays inside a
+    walled scene), coming closer to the drone when it would leave.
     """
     w, x, y, z = (float(c) for c in quat)
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    pitch = math.atan2(height, distance)
-    eye = np.asarray(pos, np.float64) + np.array([-distance * math.cos(yaw), -distance * math.sin(yaw), height])
-    cy, sy, cp, sp = math.cos(yaw / 2), math.sin(yaw / 2), math.cos(pitch / 2), math.sin(pitch / 2)
-    # q_yaw (about z) * q_pitch (about y, positive = nose down)
-    return np.array([*eye, cy * cp, -sy * sp, cy * sp, sy * cp])
+    pos = np.asarray(pos, np.float64)
+    eye = pos + np.array([-distance * math.cos(yaw), -distance * math.sin(yaw), height])
+    if bounds is not None:
+        eye = np.clip(eye, bounds[0] + margin, np.maximum(bounds[1] - margin, bounds[0] + margin))
+    if np.linalg.norm(eye - pos) < 0.2:
+        eye = pos + np.array([0.0, 0.0, max(height, 0.2)])
+        return np.array([*eye, math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0])  # straight down
+    return look_at_pose(eye, pos)
 
 
 class ChaseCamera:
@@ -60,12 +75,13 @@ class ChaseCamera:
         self.spec = CameraSpec(name="chase", kind="rgb", width=size, height=size, hfov_deg=hfov_deg, far=100.0)
         self.distance = distance
         self.height = height
+        self.bounds = np.asarray(scene.bounds, np.float64)
         self.renderer = make_renderer("raycast", scene, [self.spec], drone_radius=drone_radius, threads=1)
 
     def render(self, pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
         """``(size, size, 3)`` uint8 view of the drone at ``pos`` with orientation ``quat`` (wxyz)."""
         drone = np.array([*pos, *quat], np.float64)
-        poses = np.stack([chase_pose(pos, quat, self.distance, self.height), drone])
+        poses = np.stack([chase_pose(pos, quat, self.distance, self.height, self.bounds), drone])
         image = self.renderer.render(poses, show_drones=True)["chase"][0]
         return np.ascontiguousarray(image.transpose(1, 2, 0))
 

@@ -1,0 +1,46 @@
+"""Training configuration: overrides from the command line, validation, and what reaches make_env."""
+
+from __future__ import annotations
+
+import pytest
+
+from visfly_dist.aggregator.config import PoolConfig
+from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.training.config import TASK_DEFAULTS, TrainConfig, parse_override
+from visfly_dist.training.ppo import env_kwargs
+
+
+def test_parse_override_reads_json_else_text() -> None:
+    assert parse_override("max_episode_steps=64") == ("max_episode_steps", 64)
+    assert parse_override("scenes=[\"gen:pillars\"]") == ("scenes", ["gen:pillars"])
+    assert parse_override("controller=lv") == ("controller", "lv")
+    with pytest.raises(ConfigError, match="'oops' must look like KEY=VALUE"):
+        parse_override("oops")
+
+
+def test_resolved_fills_task_defaults_and_validate_lists_every_problem() -> None:
+    cfg = TrainConfig(task="navigation", num_envs=4).resolved()
+    assert cfg.num_envs == 4 and cfg.timesteps == TASK_DEFAULTS["navigation"]["timesteps"]
+    assert cfg.out.startswith("runs/navigation-")
+    bad = TrainConfig(task="hover", num_envs=2, n_steps=8, batch_size=64, lr=2.0, backbone="vgg").resolved()
+    with pytest.raises(ConfigError) as err:
+        bad.validate()
+    message = str(err.value)
+    assert "batch_size=64 must be <= n_steps * num_envs = 16" in message
+    assert "lr=2.0" in message and "backbone='vgg'" in message
+    assert TrainConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_env_kwargs_map_flags_onto_the_task_pool_and_cameras() -> None:
+    cfg = TrainConfig(task="navigation", workers=1, connect=("tcp/127.0.0.1:7447",), run_id="exp1", seed=5,
+                      overrides={"cameras": [{"name": "depth", "width": 32, "height": 32}], "pool": {"lease_ms": 5000}})
+    kwargs = env_kwargs(cfg)
+    assert kwargs["seed"] == 5
+    assert kwargs["cameras"] == (CameraSpec(name="depth", width=32, height=32),)
+    pool = kwargs["pool"]
+    assert isinstance(pool, PoolConfig)
+    assert (pool.num_local_workers, pool.connect, pool.run_id, pool.lease_ms) == (1, ("tcp/127.0.0.1:7447",), "exp1", 5000)
+    assert "pool" not in env_kwargs(TrainConfig(task="hover"))  # the task's own pool stays untouched
+    with pytest.raises(ConfigError, match="unknown task 'hovr'"):
+        env_kwargs(TrainConfig(task="hovr", workers=1))
