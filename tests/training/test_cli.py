@@ -59,15 +59,26 @@ def test_eval_reports_and_writes_a_gif_of_the_first_episode(trained_run: Path, t
     assert 1 <= len(frames) <= 20 and frames[0].shape[:2] == (192, 192)
 
 
-def test_bad_task_and_bad_setting_exit_2_with_one_line(tmp_path: Path) -> None:
+def test_bad_task_exits_2_with_one_line(tmp_path: Path) -> None:
     proc = run_cli("train", "hovr", "--out", str(tmp_path / "x"))
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["visfly-dist train: error: unknown task 'hovr'; valid tasks: "
                                                 "navigation, hover, landing, gap_crossing, racing"]
-    proc = run_cli("train", "hover", "--set", "max_episod_steps=20", "--out", str(tmp_path / "x"))
-    assert proc.returncode == 2 and "max_episod_steps" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
-    proc = run_cli("train", "hover", "--set", "pool={\"workerz\": 1}", "--out", str(tmp_path / "x"))
-    assert proc.returncode == 2 and "unknown pool setting(s) ['workerz']" in proc.stderr
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(("setting", "message"), [
+    ("max_episod_steps=20", "unknown setting(s) ['max_episod_steps'] for task 'hover'"),
+    ('pool={"workerz": 1}', "unknown pool setting(s) ['workerz']"),
+    ("max_episode_steps=0", "max_episode_steps=0 must be an int >= 1"),
+])
+def test_bad_setting_exits_2_before_any_worker(setting: str, message: str, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    from visfly_dist.cli import main
+
+    assert main(["train", "hover", "--set", setting, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("visfly-dist train: error: ") and message in err[0]
     assert not (tmp_path / "x").exists()
 
 

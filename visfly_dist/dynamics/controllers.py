@@ -28,7 +28,7 @@ from typing import Sequence
 import torch
 
 from visfly_dist.dynamics.airframe import Airframe
-from visfly_dist.dynamics.model import GRAVITY, OMEGA, POS, QUAT, ROTOR, VEL, RigidBodyModel
+from visfly_dist.dynamics.model import GRAVITY, RigidBodyModel, matmul, unpack
 
 LV_MAX_SPEED = 10.0
 PS_MAX_OFFSET = 10.0
@@ -98,10 +98,10 @@ class CollectiveThrustBodyRate(Controller):
 
     def rotor_command(self, s: torch.Tensor, setpoint: tuple[torch.Tensor, ...]) -> torch.Tensor:
         collective, rate = setpoint
-        omega = s[OMEGA]
+        _, _, _, omega, rotor = unpack(s)
         u = self.kp * (rate - omega)
         if self.kd is not None:
-            angular_accel = (self.model.mix[1:] @ self.model.thrust(s[ROTOR])
+            angular_accel = (matmul(self.model.mix[1:], self.model.thrust(rotor))
                              + self.model.gyro_accel(omega))
             u = u - self.kd * angular_accel
         return self._rotor_speeds(collective, u, omega)
@@ -130,20 +130,20 @@ class GeometricController(Controller):
         self.max_horizontal = float(g.max_horizontal_accel)
         self.vertical_range = tuple(float(x) for x in g.vertical_accel_range)
 
-    def velocity_setpoint(self, s: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """(3, N) world velocity set point from the set point ``target``."""
+    def velocity_setpoint(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """(3, N) world velocity set point at positions (3, N) for the set point ``target``."""
         raise NotImplementedError
 
     def rotor_command(self, s: torch.Tensor, setpoint: tuple[torch.Tensor, ...]) -> torch.Tensor:
         target, heading = setpoint
-        vel, omega = s[VEL], s[OMEGA]
-        accel = self.kv * (self.velocity_setpoint(s, target) - vel)
+        pos, vel, quat, omega, _ = unpack(s)
+        accel = self.kv * (self.velocity_setpoint(pos, target) - vel)
         horizontal = accel[:2]
         norm = (horizontal.square().sum(0, keepdim=True) + 1e-12).sqrt()
         horizontal = horizontal * (self.max_horizontal / norm).clamp(max=1.0)
         vertical = accel[2:].clamp(*self.vertical_range)
 
-        rot = self.model.rotation_matrix(s[QUAT])
+        rot = self.model.rotation_matrix(quat)
         drag = (rot * self.model.drag_accel_body(rot, vel)[None]).sum(1)
         thrust_vec = torch.cat((horizontal, vertical)) - self.model.gravity - drag
         collective = (thrust_vec * rot[:, 2]).sum(0, keepdim=True)
@@ -173,7 +173,7 @@ class LinearVelocity(GeometricController):
     def prepare(self, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
         return action[:3] * LV_MAX_SPEED, self._heading(action[3])
 
-    def velocity_setpoint(self, s: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def velocity_setpoint(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         return target
 
 
@@ -190,8 +190,8 @@ class PositionYaw(GeometricController):
     def prepare(self, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
         return self.origin + action[:3] * PS_MAX_OFFSET, self._heading(action[3])
 
-    def velocity_setpoint(self, s: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        return self.kx * (target - s[POS])
+    def velocity_setpoint(self, pos: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        return self.kx * (target - pos)
 
 
 def make_controller(name: str, model: RigidBodyModel, airframe: Airframe,

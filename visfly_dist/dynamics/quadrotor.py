@@ -9,7 +9,7 @@ import torch
 from visfly_dist.dynamics.airframe import Airframe, load_airframe
 from visfly_dist.dynamics.config import DynamicsConfig
 from visfly_dist.dynamics.controllers import make_controller
-from visfly_dist.dynamics.model import GRAVITY, OMEGA, QUAT, ROTOR, RigidBodyModel, euler_step, rk4_step
+from visfly_dist.dynamics.model import GRAVITY, ROTOR_ROW, ROWS, RigidBodyModel, euler_step, rk4_step, unpack
 from visfly_dist.dynamics.state import QuadState
 from visfly_dist.errors import ConfigError
 
@@ -163,18 +163,18 @@ class Quadrotor:
         for _ in range(self.config.substeps):
             rotor_cmd = self.controller.rotor_command(s, setpoint)
             if not self.config.motor_lag:
-                s = torch.cat((s[:ROTOR.start], rotor_cmd))
+                s = torch.cat((s[:ROTOR_ROW], rotor_cmd))
             s = self._integrate(self.model, s, rotor_cmd, h)
             contact = contact | (s[2] <= 0)
             if self.config.ground:
                 s = _ground_reaction(s)
-        quat = s[QUAT]
-        s = torch.cat((s[:QUAT.start], quat / quat.norm(dim=0, keepdim=True), s[OMEGA.start:])).T.contiguous()
-        return s[:, 0:3], s[:, 3:6], s[:, 6:10], s[:, 10:13], s[:, 13:17], contact
+        pos, vel, quat, omega, rotor = unpack(s)
+        s = torch.cat((pos, vel, quat / quat.norm(dim=0, keepdim=True), omega, rotor)).T.contiguous()
+        return (*s.split(ROWS, dim=1), contact)
 
 
 def _ground_reaction(s: torch.Tensor) -> torch.Tensor:
     """Put agents below ``z = 0`` back on the plane and remove their downward velocity."""
-    z, vz = s[2:3], s[5:6]
+    xy, z, vxy, vz, rest = s.split((2, 1, 2, 1, s.shape[0] - 6))
     below = z < 0
-    return torch.cat((s[:2], z.clamp_min(0.0), s[3:5], torch.where(below, vz.clamp_min(0.0), vz), s[6:]))
+    return torch.cat((xy, z.clamp_min(0.0), vxy, torch.where(below, vz.clamp_min(0.0), vz), rest))
