@@ -140,32 +140,40 @@ def _save(fig: Any, path: Path) -> bool:
 
 
 def _plot_render(result: Mapping[str, Any], path: Path) -> bool:
+    """One panel per sensor kind: a line per backend (solid in-process, dashed through a worker),
+    and the peer's TinyRenderer on the depth panel."""
     import matplotlib.pyplot as plt
 
     rows = [r for r in _section_rows(result, "render") if "res" in r and r.get("frames_per_s")]
     peer = [r for r in result.get("sections", {}).get("peer", {}).get("depth", []) if r.get("frames_per_s")]
     if not rows and not peer:
         return False
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    series: dict[str, list[tuple[int, float]]] = {}
-    for r in rows:
-        label = f"{r.get('backend')} {r.get('kind')}" + (f" ({r['where']})" if r.get("where") else "")
-        series.setdefault(label, []).append((int(r["res"]), float(r["frames_per_s"])))
-    if peer:
-        series["pybullet TinyRenderer depth (peer)"] = [(int(r["res"]), float(r["frames_per_s"])) for r in peer]
-    for label, pts in sorted(series.items()):
-        pts.sort()
-        style = "k--o" if "peer" in label else "-o"
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], style, label=label)
-    ax.set_xscale("log", base=2)
-    ax.set_yscale("log")
-    ticks = sorted({p[0] for pts in series.values() for p in pts})
-    ax.set_xticks(ticks, [f"{t}x{t}" for t in ticks])
-    ax.set_xlabel("resolution")
-    ax.set_ylabel("frames/s")
-    ax.set_title("Rendering: frames/s against resolution (garage-stones)")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    kinds = sorted({r["kind"] for r in rows} | ({"depth"} if peer else set()), key=lambda k: (k != "depth", k))
+    backends = sorted({r["backend"] for r in rows})
+    colours = {b: f"C{i}" for i, b in enumerate(backends)}
+    fig, axes = plt.subplots(1, len(kinds), figsize=(4.2 * len(kinds), 4.2), sharey=True, squeeze=False)
+    for ax, kind in zip(axes[0], kinds):
+        series: dict[tuple[str, str], list[tuple[int, float]]] = {}
+        for r in rows:
+            if r["kind"] == kind:
+                series.setdefault((r["backend"], r.get("where", "")), []).append((int(r["res"]), float(r["frames_per_s"])))
+        for (backend, where), pts in sorted(series.items()):
+            pts.sort()
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "o" + ("--" if where == "worker" else "-"),
+                    color=colours[backend], label=f"{backend} ({where.replace('_', '-')})" if where else backend)
+        if kind == "depth" and peer:
+            pts = sorted((int(r["res"]), float(r["frames_per_s"])) for r in peer)
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], "k:s", label="peer: pybullet TinyRenderer")
+        ticks = sorted({p[0] for pts in series.values() for p in pts} | ({int(r["res"]) for r in peer} if kind == "depth" else set()))
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xticks(ticks, [f"{t}x{t}" for t in ticks])
+        ax.set_title(kind)
+        ax.set_xlabel("resolution")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("frames/s")
+    fig.suptitle("Rendering garage-stones: frames/s against resolution")
     return _save(fig, path)
 
 

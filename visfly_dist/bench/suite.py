@@ -43,6 +43,8 @@ class Sizes:
     physics_modes: tuple[str, ...] = ("eager", "compiled")
     physics_grads: tuple[bool, ...] = (False, True)
     physics_steps: int = 200
+    physics_compiled_grad_agents: tuple[int, ...] = (100, 1_000, 10_000)
+    """Agent counts of the compiled-with-grad configuration: compiling a backward pass takes minutes."""
     render_res: tuple[int, ...] = (64, 256)
     render_kinds: tuple[str, ...] = ("depth", "rgb", "segmentation")
     render_cameras: int = 100
@@ -64,7 +66,7 @@ class Sizes:
 
 PRESETS: dict[str, Sizes] = {
     "full": Sizes(),
-    "quick": Sizes(physics_steps=30, render_reps=2, step_steps=30, scaling_steps=15, peer_seconds=2.0,
+    "quick": Sizes(physics_steps=30, physics_compiled_grad_agents=(100,), render_reps=2, step_steps=30, scaling_steps=15, peer_seconds=2.0,
                    peer_cameras=50, peer_reps=1),
     "tiny": Sizes(physics_agents=(8,), physics_modes=("eager",), physics_grads=(False,), physics_steps=2,
                   render_res=(16,), render_kinds=("depth",), render_cameras=4, render_reps=1,
@@ -87,6 +89,8 @@ def section_physics(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     for mode in sizes.physics_modes:
         for grad in sizes.physics_grads:
             for agents in sizes.physics_agents:
+                if mode == "compiled" and grad and agents not in sizes.physics_compiled_grad_agents:
+                    continue
                 watch = Stopwatch()
                 if mode == "compiled":
                     # Each configuration compiles afresh (its compile time is its own), and compiled

@@ -28,7 +28,7 @@ from typing import Sequence
 import torch
 
 from visfly_dist.dynamics.airframe import Airframe
-from visfly_dist.dynamics.model import GRAVITY, RigidBodyModel, matmul, unpack
+from visfly_dist.dynamics.model import GRAVITY, RigidBodyModel, unpack
 
 LV_MAX_SPEED = 10.0
 PS_MAX_OFFSET = 10.0
@@ -101,7 +101,7 @@ class CollectiveThrustBodyRate(Controller):
         _, _, _, omega, rotor = unpack(s)
         u = self.kp * (rate - omega)
         if self.kd is not None:
-            angular_accel = (matmul(self.model.mix[1:], self.model.thrust(rotor))
+            angular_accel = (self.model.mix[1:] @ self.model.thrust(rotor)
                              + self.model.gyro_accel(omega))
             u = u - self.kd * angular_accel
         return self._rotor_speeds(collective, u, omega)

@@ -32,17 +32,6 @@ ROTOR_Y = (-1.0, 1.0, 1.0, -1.0)
 ROTOR_YAW = (-1.0, -1.0, 1.0, 1.0)
 
 
-def matmul(weights: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """``weights (m, k) @ x (k, N)`` for a small constant ``weights``.
-
-    Eager: one BLAS call. Under ``torch.compile``: a broadcast multiply and sum, which inductor fuses
-    with its neighbours into one loop over the agents instead of calling out to BLAS.
-    """
-    if torch.compiler.is_compiling():
-        return (weights[:, :, None] * x[None]).sum(1)
-    return weights @ x
-
-
 def unpack(s: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """Views ``(pos, vel, quat, omega, rotor)`` of a flat state (one split: one op in backward)."""
     return s.split(ROWS)
@@ -156,11 +145,11 @@ class RigidBodyModel:
         """(3, 3, N) body-to-world rotation of (4, N) quaternions (scaled by |q|^2)."""
         n = quat.shape[1]
         outer = (quat[:, None] * quat[None]).reshape(16, n)
-        return matmul(self.rotation, outer).reshape(3, 3, n)
+        return (self.rotation @ outer).reshape(3, 3, n)
 
     def gyro_accel(self, omega: torch.Tensor) -> torch.Tensor:
         """(3, N) angular acceleration ``-J^-1 (omega x J omega)`` of body rates (3, N)."""
-        return matmul(self.gyro, (omega[:, None] * omega[None]).reshape(9, omega.shape[1]))
+        return self.gyro @ (omega[:, None] * omega[None]).reshape(9, omega.shape[1])
 
     def drag_accel_body(self, rot: torch.Tensor, vel: torch.Tensor) -> torch.Tensor:
         """(3, N) body-frame drag acceleration at world velocity ``vel`` (3, N), given rotations."""
@@ -172,20 +161,20 @@ class RigidBodyModel:
     def thrusts_for(self, collective: torch.Tensor, body_accel: torch.Tensor) -> torch.Tensor:
         """(4, N) rotor thrusts giving collective acceleration (1, N) and angular acceleration (3, N)
         from the rotors (unclamped)."""
-        return matmul(self.mix_inverse, torch.cat((collective, body_accel)))
+        return self.mix_inverse @ torch.cat((collective, body_accel))
 
     # --- equations of motion ------------------------------------------------------------------
 
     def derivative(self, s: torch.Tensor, rotor_cmd: torch.Tensor) -> torch.Tensor:
         """ds/dt (17, N) of the flat state ``s`` with rotor speed commands (4, N) held."""
         _, vel, quat, omega, rotor = unpack(s)
-        wrench = matmul(self.mix, self.thrust(rotor))                   # collective acc; angular acc
+        wrench = self.mix @ self.thrust(rotor)                     # collective acc; angular acc
         rot = self.rotation_matrix(quat)
         force_body = torch.addcmul(self.drag_accel_body(rot, vel), self.unit_z, wrench[:1])
         accel = (rot * force_body[None]).sum(1) + self.gravity      # R f_b + g
         omega_dot = wrench[1:] + self.gyro_accel(omega)
         n = s.shape[1]
-        quat_dot = matmul(self.quat_rate, (quat[:, None] * omega[None]).reshape(12, n))
+        quat_dot = self.quat_rate @ (quat[:, None] * omega[None]).reshape(12, n)
         rotor_dot = (rotor_cmd - rotor) * self.inv_motor_tau
         return torch.cat((vel, accel, quat_dot, omega_dot, rotor_dot))
 
