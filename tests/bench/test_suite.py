@@ -57,7 +57,7 @@ def test_tiny_suite_json_has_machine_figures_and_ratios(tiny_run):
     stages = sec["end_to_end"]["rows"][0]["stages"]
     assert set(stages) == {"physics", "transport", "render", "queries", "other"}
     assert sum(stages.values()) == pytest.approx(1.0, abs=1e-3)
-    assert sec["peer"]["physics"]["sim_seconds_per_s"] > 0 and sec["peer"]["depth"][0]["frames_per_s"] > 0
+    assert sec["peer"]["physics"][0]["sim_seconds_per_s"] > 0 and sec["peer"]["depth"][0]["frames_per_s"] > 0
     depth = result["ratios"]["depth 64x64 frames/s"]
     assert depth["goal"] == GOALS["depth"]  # tiny runs 16x16 only, so there is no 64x64 ratio to compute
     assert depth["ratio"] is None
@@ -76,10 +76,10 @@ def test_tiny_suite_writes_plots_and_markdown(tiny_run):
 
 
 def test_failing_section_is_recorded_and_the_run_goes_on():
-    sizes = dataclasses.replace(PRESETS["tiny"], peer_drones=0)  # peer_physics rejects zero drones
+    sizes = dataclasses.replace(PRESETS["tiny"], peer_seconds=0.0)  # peer_physics rejects no simulated time
     lines = []
     section = run_section("peer", sizes, lines.append)
-    assert section["status"] == "error" and "ConfigError" in section["error"] and "drones=0" in section["error"]
+    assert section["status"] == "error" and "ConfigError" in section["error"] and "seconds=0.0" in section["error"]
     assert any("FAILED" in line for line in lines)
     result = {"sections": {"peer": section}}
     assert compute_ratios(result)["depth 64x64 frames/s"]["ratio"] is None
@@ -96,12 +96,16 @@ def test_ratios_use_the_fastest_of_ours_against_the_peer():
             {"backend": "raycast", "kind": "depth", "res": 64, "frames_per_s": 1500.0},
             {"backend": "egl", "kind": "depth", "res": 64, "frames_per_s": 120.0},
             {"backend": "raycast", "kind": "depth", "res": 256, "frames_per_s": 9e9}]},
-        "peer": {"status": "ok", "physics": {"drones": 100, "sim_seconds_per_s": 400.0},
+        "peer": {"status": "ok", "physics": [{"drones": 100, "sim_seconds_per_s": 400.0},
+                                             {"drones": 1000, "sim_seconds_per_s": 40.0}],
                  "depth": [{"res": 64, "frames_per_s": 60.0}]},
     }}
     ratios = compute_ratios(result)
-    assert ratios["physics sim-s/s"]["ratio"] == pytest.approx(10.0) and ratios["physics sim-s/s"]["met"]
-    assert "compiled" in ratios["physics sim-s/s"]["note"]
+    at_100 = ratios["physics sim-s/s, 100 drones"]
+    assert at_100["ratio"] == pytest.approx(10.0) and at_100["met"] and "compiled" in at_100["note"]
+    # The goal is set at the first peer size only; the larger one is shown for scaling.
+    at_1000 = ratios["physics sim-s/s, 1,000 drones"]
+    assert at_1000["ratio"] == pytest.approx(9e9 / 40.0) and at_1000["goal"] is None and at_1000["met"] is None
     assert ratios["depth 64x64 frames/s"]["ratio"] == pytest.approx(25.0)
     assert "raycast" in ratios["depth 64x64 frames/s"]["note"]
 

@@ -237,9 +237,10 @@ def _plot_physics(result: Mapping[str, Any], path: Path) -> bool:
     for label, pts in sorted(series.items()):
         pts.sort()
         ax.plot([p[0] for p in pts], [p[1] for p in pts], "-o", label=label)
-    peer = result.get("sections", {}).get("peer", {}).get("physics")
-    if peer and peer.get("drone_seconds_per_s"):
-        ax.plot([peer["drones"]], [peer["drone_seconds_per_s"]], "k*", markersize=12, label="pybullet peer")
+    peer = sorted((p["drones"], p["drone_seconds_per_s"]) for p in result.get("sections", {}).get("peer", {}).get("physics", [])
+                  if p.get("drone_seconds_per_s"))
+    if peer:
+        ax.plot([p[0] for p in peer], [p[1] for p in peer], "k:*", markersize=12, label="peer: pybullet 240 Hz")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("agents")
@@ -268,7 +269,7 @@ def section_text(name: str, section: Mapping[str, Any]) -> str:
     if name == "peer":
         parts = []
         if section.get("physics"):
-            parts.append(text_table([section["physics"]]))
+            parts.append(text_table(section["physics"]))
         if section.get("depth"):
             parts.append(text_table(section["depth"]))
         return "\n".join(parts)
@@ -326,7 +327,7 @@ def markdown_report(result: Mapping[str, Any], md_path: str | os.PathLike, plots
             continue
         if name == "peer":
             if section.get("physics"):
-                lines += [markdown_table([section["physics"]]), ""]
+                lines += [markdown_table(section["physics"]), ""]
             if section.get("depth"):
                 lines += [markdown_table(section["depth"]), ""]
         else:

@@ -57,7 +57,8 @@ class Sizes:
     scaling_scenes: tuple[int, ...] = (1, 2, 4, 8)
     scaling_workers: tuple[int, ...] = (1, 2)
     scaling_steps: int = 100
-    peer_drones: int = 100
+    peer_drones: tuple[int, ...] = (100, 1_000)
+    """Drone counts of the peer's physics; the physics goal is set at the first."""
     peer_seconds: float = 5.0
     peer_res: tuple[int, ...] = (64, 256)
     peer_cameras: int = 100
@@ -66,13 +67,13 @@ class Sizes:
 
 PRESETS: dict[str, Sizes] = {
     "full": Sizes(),
-    "quick": Sizes(physics_steps=30, physics_compiled_grad_agents=(100,), render_reps=2, step_steps=30,
+    "quick": Sizes(physics_steps=100, physics_compiled_grad_agents=(100,), render_reps=2, step_steps=30,
                    scaling_steps=15, peer_seconds=3.0, peer_reps=1),
     "tiny": Sizes(physics_agents=(8,), physics_modes=("eager",), physics_grads=(False,), physics_steps=2,
                   render_res=(16,), render_kinds=("depth",), render_cameras=4, render_reps=1,
                   step_agents=4, step_res=16, step_workers=(1,), step_shm=(True,), step_steps=2,
                   scaling_scenes=(1, 2), scaling_workers=(1,), scaling_steps=2,
-                  peer_drones=4, peer_seconds=0.05, peer_res=(16,), peer_cameras=4, peer_reps=1),
+                  peer_drones=(4,), peer_seconds=0.05, peer_res=(16,), peer_cameras=4, peer_reps=1),
 }
 
 
@@ -152,8 +153,12 @@ def section_peer(sizes: Sizes, log: Callable[[str], None]) -> dict[str, Any]:
     from visfly_dist.scenes import generate_scene
 
     scene = generate_scene("garage-stones", seed=0)
-    log(f"[bench all] peer: pybullet physics, {sizes.peer_drones} drones, {sizes.peer_seconds} s simulated")
-    physics = peer_physics(sizes.peer_drones, sizes.peer_seconds)
+    physics = []
+    for drones in sizes.peer_drones:
+        # The same simulated time at every size would take minutes at 1,000 drones; keep the wall time flat.
+        seconds = sizes.peer_seconds * min(1.0, sizes.peer_drones[0] / drones)
+        log(f"[bench all] peer: pybullet physics, {drones} drones, {seconds:g} s simulated")
+        physics.append(peer_physics(drones, seconds))
     depth = []
     for res in sizes.peer_res:
         log(f"[bench all] peer: TinyRenderer depth {res}x{res}, {sizes.peer_cameras} cameras")
@@ -200,18 +205,20 @@ def compute_ratios(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
     peer = ok.get("peer", {})
     out: dict[str, dict[str, Any]] = {}
 
-    peer_phys = peer.get("physics")
+    # Physics: simulated seconds of the batch per wall second at the same number of drones. The goal
+    # is set at the first peer size (100 drones); larger sizes show how each side scales.
     phys_rows = ok.get("physics", {}).get("rows", [])
-    at = peer_phys["drones"] if peer_phys else 100
-    for label, grad in (("physics sim-s/s", False), ("physics sim-s/s (with grad)", True)):
-        ours = _best(phys_rows, "sim_seconds_per_s", lambda r: r.get("agents") == at and bool(r.get("grad")) == grad)
-        if ours is None and not grad:
-            out[label] = _ratio(None, peer_phys and peer_phys["sim_seconds_per_s"], GOALS["physics"],
-                                f"needs the physics section at {at} agents and the peer")
-        elif ours is not None:
-            out[label] = _ratio(ours["sim_seconds_per_s"], peer_phys and peer_phys["sim_seconds_per_s"],
-                                GOALS["physics"] if not grad else None,
-                                f"{at} drones; ours: {ours.get('mode')}; peer: pybullet 240 Hz")
+    peer_rows = peer.get("physics", [])
+    if not peer_rows or not phys_rows:
+        out["physics sim-s/s"] = _ratio(None, None, GOALS["physics"], "needs the physics and peer sections")
+    for i, p in enumerate(peer_rows):
+        n = p["drones"]
+        for grad in (False, True) if i == 0 else (False,):
+            ours = _best(phys_rows, "sim_seconds_per_s", lambda r: r.get("agents") == n and bool(r.get("grad")) == grad)
+            label = f"physics sim-s/s, {n:,} drones" + (", ours with grad" if grad else "")
+            note = (f"ours: {ours.get('mode')}" if ours else f"no physics row at {n} agents") + "; peer: pybullet 240 Hz"
+            out[label] = _ratio(ours and ours["sim_seconds_per_s"], p["sim_seconds_per_s"],
+                                GOALS["physics"] if i == 0 and not grad else None, note)
 
     peer_depth = next((d for d in peer.get("depth", []) if d.get("res") == 64), None)
     render_rows = ok.get("render", {}).get("rows", [])

@@ -91,7 +91,7 @@ class SuccessCallback(BaseCallback):
             )
 
     def _on_training_end(self) -> None:
-        plot_success_curve(self.csv_path, self.run_dir / "success_curve.png")
+        plot_success_curve(self.csv_path, self.run_dir / "success_curve.png", self.episodes.maxlen or 0)
 
 
 def read_curve(csv_path: Path) -> dict[str, np.ndarray]:
@@ -101,8 +101,8 @@ def read_curve(csv_path: Path) -> dict[str, np.ndarray]:
     return {k: np.asarray([float(r[k]) for r in rows], dtype=np.float64) for k in CURVE_FIELDS}
 
 
-def plot_success_curve(csv_path: Path, png_path: Path) -> Path:
-    """Success rate and mean return against timesteps, as a PNG (empty axes before any episode)."""
+def plot_success_curve(csv_path: Path, png_path: Path, window: int = 100) -> Path:
+    """Success rate and mean return (over the last ``window`` episodes) against timesteps, as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -111,11 +111,12 @@ def plot_success_curve(csv_path: Path, png_path: Path) -> Path:
     curve = read_curve(csv_path)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.5), constrained_layout=True)
     ax1.plot(curve["timesteps"], curve["success_rate"], color="tab:green")
-    ax1.set(xlabel="timesteps", ylabel="success rate", ylim=(-0.02, 1.02), title="success rate (last episodes)")
+    ax1.set(xlabel="timesteps", ylabel="success rate", ylim=(-0.02, 1.02), title=f"success rate (last {window} episodes)")
     ax2.plot(curve["timesteps"], curve["mean_return"], color="tab:blue")
-    ax2.set(xlabel="timesteps", ylabel="mean return", title="episode return")
+    ax2.set(xlabel="timesteps", ylabel="mean return", title=f"episode return (last {window} episodes)")
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
+        ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}k")
     fig.savefig(png_path, dpi=100)
     plt.close(fig)
     return Path(png_path)

@@ -25,7 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", required=True, help="model .zip written by 'visfly-dist train'")
     parser.add_argument("--episodes", type=int, default=20, help="episodes to evaluate (default 20)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: the training run's)")
-    parser.add_argument("--deterministic", action="store_true", help="take the policy's mean action")
+    parser.add_argument("--deterministic", action="store_true",
+                        help="take the policy's mean action (default: sample, as in training; briefly trained "
+                             "policies often do much worse on their mean action)")
     parser.add_argument("--video", metavar="FILE.gif", help="film agent 0's first episode")
     parser.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     parser.add_argument("--seed", type=int, default=12345, help="env seed (default 12345, unlike training's)")
