@@ -31,10 +31,6 @@ class Timing:
     def median(self) -> float:
         return statistics.median(self.seconds)
 
-    @property
-    def best(self) -> float:
-        return min(self.seconds)
-
     def rate(self, work: float) -> float:
         """``work`` units done per second, from the median repetition."""
         return work / self.median if self.median > 0 else float("inf")

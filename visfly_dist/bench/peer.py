@@ -31,6 +31,7 @@ import numpy as np
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.scene_worker.camera_math import camera_world_poses
 from visfly_dist.scenes.scene import Scene
 
 MASS = 0.46  # kg, our default airframe
@@ -48,18 +49,6 @@ def _pybullet():
     except ImportError as exc:
         raise ConfigError("the peer benchmark needs pybullet: pip install 'visfly-dist[bench]' (or pybullet)") from exc
     return pybullet
-
-
-def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(n, 3, 3)`` from unit quaternions ``(n, 4)`` wxyz."""
-    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], axis=1)
 
 
 def peer_physics(drones: int = 100, seconds: float = 2.0, *, seed: int = 0) -> dict[str, Any]:
@@ -180,10 +169,7 @@ class PeerCamera:
         """Metric depth ``(n, 1, H, W)`` float32 for drone poses ``(n, 7)`` ``[x, y, z, qw, qx, qy, qz]``."""
         p, c, cam = self._p, self._client, self.camera
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 7)
-        mount = quat_wxyz_to_matrix(np.asarray(cam.rotation))[0]
-        body = quat_wxyz_to_matrix(poses[:, 3:])
-        rot = body @ mount
-        eyes = poses[:, :3] + body @ np.asarray(cam.offset)
+        eyes, rot = camera_world_poses(poses, cam)  # columns of rot: optical axis, left, up
         out = np.empty((len(poses), 1, cam.height, cam.width), dtype=np.float32)
         near, far = cam.near, cam.far
         for i in range(len(poses)):
@@ -208,17 +194,6 @@ class PeerCamera:
         self.close()
 
 
-def sample_camera_poses(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
-    """``n`` level poses ``(n, 7)`` inside the scene's bounds with random yaw (the same for every renderer)."""
-    rng = np.random.default_rng(seed)
-    low, high = scene.bounds
-    margin = np.minimum(0.5, 0.25 * (high - low))
-    pos = rng.uniform(low + margin, high - margin, (n, 3))
-    yaw = rng.uniform(-math.pi, math.pi, n)
-    quat = np.stack([np.cos(yaw / 2), np.zeros(n), np.zeros(n), np.sin(yaw / 2)], axis=1)
-    return np.concatenate([pos, quat], axis=1)
-
-
 def peer_depth(res: int = 64, cameras: int = 100, scene: Scene | None = None, *, reps: int = 2,
                seed: int = 0) -> dict[str, Any]:
     """TinyRenderer depth frames/s: ``cameras`` frames of ``res`` x ``res`` per repetition.
@@ -228,7 +203,7 @@ def peer_depth(res: int = 64, cameras: int = 100, scene: Scene | None = None, *,
         cameras: frames per repetition (one per drone pose).
         scene: the scene; garage-stones seed 0 when None.
         reps: timed repetitions (one untimed frame warms up first); the median counts.
-        seed: seed of the camera poses.
+        seed: seed of the camera poses (clear of obstacles, as in ``bench render``).
 
     Returns:
         ``{"res", "cameras", "frames_per_s", "wall_s", "triangles", "scene", "renderer"}``.
@@ -236,12 +211,13 @@ def peer_depth(res: int = 64, cameras: int = 100, scene: Scene | None = None, *,
     if res < 1 or cameras < 1 or reps < 1:
         raise ConfigError(f"peer_depth needs res, cameras and reps >= 1, got {res=}, {cameras=}, {reps=}")
     from visfly_dist.bench.common import time_it
+    from visfly_dist.bench.render import bench_poses
 
     if scene is None:
         from visfly_dist.scenes import generate_scene
 
         scene = generate_scene("garage-stones", seed=0)
-    poses = sample_camera_poses(scene, cameras, seed)
+    poses = bench_poses(scene, cameras, seed)  # the poses our renderers are timed at
     with PeerCamera(scene, CameraSpec(width=res, height=res)) as cam:
         cam.depth(poses[:1])
         timing = time_it(lambda: cam.depth(poses), reps=reps, warmup=0)
