@@ -24,7 +24,7 @@ import argparse
 import dataclasses
 import time
 from contextlib import contextmanager
-from typing import Any, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -142,6 +142,24 @@ def bench_step(agents: int = 100, workers: Sequence[int] = (1, 2), res: int = 64
     """
     if steps < 1 or warmup < 0:
         raise ConfigError(f"steps={steps!r} must be >= 1 and warmup={warmup!r} >= 0")
+    import torch
+
+    # The driving process runs single-threaded, as `visfly-dist train` does: with local workers on
+    # the same cores, torch's second thread makes each small dynamics op wait (measured 2.5 -> 47 ms).
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    rows = []
+    try:
+        rows = _bench_each(task, agents, workers, res, backend, shm, steps, scenes, warmup, log)
+    finally:
+        torch.set_num_threads(previous_threads)
+    order = ("task", "agents", "scenes", "workers", "shm", "backend", "res", "steps", "env_steps_per_s", "step_ms",
+             "startup_s", "resets", "stages", "stage_ms")
+    return [{k: row[k] for k in order} for row in rows]
+
+
+def _bench_each(task: str, agents: int, workers: Sequence[int], res: int, backend: str, shm: bool, steps: int,
+                scenes: int | None, warmup: int, log: Callable[[str], None] | None) -> list[dict[str, Any]]:
     rows = []
     for w in workers:
         if log:
@@ -155,9 +173,7 @@ def bench_step(agents: int = 100, workers: Sequence[int] = (1, 2), res: int = 64
                 "backend": backend, "res": res, "startup_s": round(startup, 2)})
         finally:
             env.close()
-    order = ("task", "agents", "scenes", "workers", "shm", "backend", "res", "steps", "env_steps_per_s", "step_ms",
-             "startup_s", "resets", "stages", "stage_ms")
-    return [{k: row[k] for k in order} for row in rows]
+    return rows
 
 
 def _measure(env: Any, steps: int, warmup: int) -> dict[str, Any]:
