@@ -59,10 +59,9 @@ def peer_physics(drones: int = 100, seconds: float = 2.0, *, seed: int = 0) -> d
     controller; thrusts are computed batched in numpy once per control step.
 
     Returns:
-        ``{"drones", "sim_seconds", "wall_s", "sim_seconds_per_s", "drone_seconds_per_s",
-        "agent_steps_per_s", "physics_hz", "ctrl_hz", "final_mean_z"}``: ``sim_seconds_per_s`` is
-        simulated seconds of the whole batch per wall second (as in ``bench physics``),
-        ``drone_seconds_per_s`` that times the drones; ``agent_steps_per_s`` counts physics steps
+        ``{"drones", "sim_seconds", "wall_s", "sim_seconds_per_s", "agent_steps_per_s", "physics_hz",
+        "ctrl_hz", "final_mean_z"}``: ``sim_seconds_per_s`` is simulated drone-seconds per wall second
+        (as in ``bench physics``); ``agent_steps_per_s`` counts physics steps
         (240 Hz) times drones.
     """
     if drones < 1 or seconds <= 0:
@@ -117,8 +116,7 @@ def peer_physics(drones: int = 100, seconds: float = 2.0, *, seed: int = 0) -> d
         "drones": drones,
         "sim_seconds": sim_seconds,
         "wall_s": wall,
-        "sim_seconds_per_s": sim_seconds / wall,
-        "drone_seconds_per_s": drones * sim_seconds / wall,
+        "sim_seconds_per_s": drones * sim_seconds / wall,
         "agent_steps_per_s": drones * ctrl_steps * substeps / wall,
         "physics_hz": PYB_HZ,
         "ctrl_hz": CTRL_HZ,

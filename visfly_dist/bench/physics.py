@@ -6,8 +6,8 @@ commands. Without grad the loop only steps; with grad the actions require grad a
 BPTT), and the backward passes are part of the time.
 
 Each JSON row: ``agents``, ``mode`` (eager|compiled), ``grad``, ``agent_steps_per_s`` (agents x
-control steps per wall second), ``sim_seconds_per_s`` (simulated seconds of the whole batch per wall
-second), ``device``, ``steps``, ``seconds``, ``compile_s`` (first call, compiled mode), ``threads``.
+control steps per wall second), ``sim_seconds_per_s`` (simulated drone-seconds per wall
+second: agents x simulated seconds), ``device``, ``steps``, ``seconds``, ``compile_s`` (first call, compiled mode), ``threads``.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def bench_one(agents: int, mode: str, grad: bool, device: str = "cpu", steps: in
     return {
         "agents": agents, "mode": mode, "grad": grad,
         "agent_steps_per_s": agents * steps / seconds,
-        "sim_seconds_per_s": steps * CTRL_DT / seconds,
+        "sim_seconds_per_s": agents * steps * CTRL_DT / seconds,
         "device": str(quad.device), "steps": steps, "seconds": seconds,
         "compile_s": warm if mode == "compiled" else None,
         "threads": torch.get_num_threads(),

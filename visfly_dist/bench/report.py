@@ -233,12 +233,12 @@ def _plot_physics(result: Mapping[str, Any], path: Path) -> bool:
     series: dict[str, list[tuple[int, float]]] = {}
     for r in rows:
         label = f"{r.get('mode')}{' + grad' if r.get('grad') else ''}"
-        series.setdefault(label, []).append((int(r["agents"]), int(r["agents"]) * float(r["sim_seconds_per_s"])))
+        series.setdefault(label, []).append((int(r["agents"]), float(r["sim_seconds_per_s"])))
     for label, pts in sorted(series.items()):
         pts.sort()
         ax.plot([p[0] for p in pts], [p[1] for p in pts], "-o", label=label)
-    peer = sorted((p["drones"], p["drone_seconds_per_s"]) for p in result.get("sections", {}).get("peer", {}).get("physics", [])
-                  if p.get("drone_seconds_per_s"))
+    peer = sorted((p["drones"], p["sim_seconds_per_s"]) for p in result.get("sections", {}).get("peer", {}).get("physics", [])
+                  if p.get("sim_seconds_per_s"))
     if peer:
         ax.plot([p[0] for p in peer], [p[1] for p in peer], "k:*", markersize=12, label="peer: pybullet 240 Hz")
     ax.set_xscale("log")
@@ -299,7 +299,7 @@ def markdown_report(result: Mapping[str, Any], md_path: str | os.PathLike, plots
         "calls; TinyRenderer camera) on the same scene mesh, measured in the same run on the same machine.",
         "",
         "How to read: an env-step is one agent advanced one control step (a `VecEnv.step` of 100 agents is",
-        "100 env-steps). `sim_seconds_per_s` is simulated seconds of the whole batch per wall second (ours:",
+        "100 env-steps). `sim_seconds_per_s` is simulated drone-seconds per wall second (ours:",
         "control steps of 0.02 s, RK4 at 0.005 s; the peer: 240 Hz Bullet steps), compared at the same",
         "number of drones. Stage shares are of `VecEnv.step`'s wall time; `transport` includes",
         "serialisation on both sides. Ratios are ours / peer in the same run.",
