@@ -177,6 +177,14 @@ class DroneEnvBase(VecEnv):
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         """Called after agents ``idx`` got their new state, before their first observation."""
 
+    def update_task_state(self) -> None:
+        """Advance the task's own per-step state (previous distances, gate counters, ...).
+
+        Called exactly once per step, after ``get_success``, ``get_failure``, ``get_reward`` and
+        ``get_observation``: those hooks must be pure (calling one twice gives the same result and
+        changes nothing), so that state advances in this one place.
+        """
+
     # ----- helpers for tasks --------------------------------------------------------------------
 
     def state_vector(self, origin: torch.Tensor | None = None) -> torch.Tensor:
@@ -222,6 +230,7 @@ class DroneEnvBase(VecEnv):
         reward = self.get_reward()
         self.episode_return = self.episode_return + reward.detach()
         observation = self._observation()
+        self.update_task_state()
 
         terminated = self.success | self.failure
         truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
