@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+
 import msgpack
 import numpy as np
 import pytest
@@ -62,12 +64,11 @@ def test_non_contiguous_arrays_travel_as_their_values():
 
 
 def test_replies_round_trip_with_plain_values_and_numpy_scalars():
-    reply = {"type": "step_result", "scenes": [{"scene_key": "s", "images": {"depth": np.ones((2, 1, 4, 4), np.float32)},
-                                                "distance": np.float32(1.5), "n": np.int64(3), "t": (1, 2)}],
-             "timings": {"total_s": 0.01}}
+    reply = {"type": "step_result", "counts": np.array([2], np.int32), "images": {"depth": np.ones((2, 1, 4, 4), np.float32)},
+             "distance": np.float32(1.5), "n": np.int64(3), "t": (1, 2), "timings": {"total_s": 0.01}}
     out = decode(encode(reply))
-    assert out["version"] == PROTOCOL_VERSION and out["scenes"][0]["n"] == 3 and out["scenes"][0]["t"] == [1, 2]
-    assert out["scenes"][0]["images"]["depth"].shape == (2, 1, 4, 4)
+    assert out["version"] == PROTOCOL_VERSION and out["n"] == 3 and out["t"] == [1, 2]
+    assert out["images"]["depth"].shape == (2, 1, 4, 4) and out["distance"] == 1.5
 
 
 def test_error_message_carries_type_and_message():
@@ -84,17 +85,21 @@ def test_encode_rejects_what_cannot_travel():
         encode({"a": 1})
 
 
-def _raw(obj) -> bytes:
-    return msgpack.packb(obj, use_bin_type=True)
+def _raw(obj, tail: bytes = b"\0" * 8) -> bytes:
+    """A framed payload: our prefix, ``obj`` as the msgpack header, ``tail`` as the array bytes."""
+    header = msgpack.packb(obj, use_bin_type=True)
+    return struct.pack("<4sI", codec.MAGIC, len(header)) + header + tail
 
 
-def _nd(dtype="<f4", shape=(2,), data=b"\0" * 8):
-    return {"__nd__": 1, "dtype": dtype, "shape": list(shape), "data": data}
+def _nd(dtype="<f4", shape=(2,), offset=0, nbytes=8):
+    return {"__nd__": 1, "dtype": dtype, "shape": list(shape), "offset": offset, "nbytes": nbytes}
 
 
 @pytest.mark.parametrize("payload, match", [
-    (b"", "not a valid msgpack message"),
-    (b"\xc1\xff\x00garbage", "not a valid msgpack message"),
+    (b"", "does not start with the framing"),
+    (b"\xc1\xff\x00garbage", "does not start with the framing"),
+    (codec.MAGIC + b"\xff\xff\x00\x00", "header length 65535 exceeds"),
+    (codec.MAGIC + b"\x03\x00\x00\x00\xc1\xff\x00", "not a valid msgpack message"),
     (_raw([1, 2, 3]), "must be a map, got list"),
     (_raw("hello"), "must be a map, got str"),
     (_raw({"type": "health"}), "protocol version None not supported"),
@@ -104,10 +109,13 @@ def _nd(dtype="<f4", shape=(2,), data=b"\0" * 8):
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(dtype="|O")}), "dtype '\\|O' not allowed"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(dtype="<c16")}), "dtype '<c16' not allowed"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(3,))}), "data is 8 bytes but .* need 12"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(offset=4)}), "outside the payload's 8-byte tail"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(offset=-1)}), "outside the payload"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(-2,))}), "shape .* non-negative ints"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=[1] * 9)}), "at most 8"),
-    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(data="text")}), "data must be bytes"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(nbytes="8")}), "outside the payload"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(1 << 20, 1 << 20))}), "exceeds the bound"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(True, 2))}), "non-negative ints"),
     (_raw({1: "int keys", "version": PROTOCOL_VERSION, "type": "x"}), "not a valid msgpack message"),
 ])
 def test_decode_rejects_malformed_payloads(payload, match):
@@ -133,3 +141,11 @@ def test_decoded_arrays_are_read_only_views():
     out = decode(encode({"type": "x", "a": np.zeros(3, np.float32)}))
     with pytest.raises(ValueError):
         out["a"][0] = 1.0
+
+
+def test_decoded_arrays_view_the_payload_in_place():
+    images = np.arange(4 * 64 * 64, dtype=np.float32).reshape(4, 1, 64, 64)
+    payload = encode({"type": "x", "images": {"depth": images}, "n": np.arange(3)})
+    out = decode(payload)
+    np.testing.assert_array_equal(out["images"]["depth"], images)
+    assert out["images"]["depth"].base is not None and np.shares_memory(out["images"]["depth"], np.frombuffer(payload, np.uint8))

@@ -30,7 +30,8 @@ def _step(**change) -> dict:
 
 
 def _step_poses(poses) -> dict:
-    return _step(scenes=[{"scene_key": "s0", "poses": poses}])
+    n = len(poses) if hasattr(poses, "__len__") else 1
+    return _step(keys=["s0"], counts=np.array([n], np.int32), poses=poses)
 
 
 def _load(**change) -> dict:
@@ -98,10 +99,13 @@ MALFORMED = {
     "load radius negative": (_load(drone_radius=-1.0), "drone_radius=-1.0 must be finite and in"),
     "load radius bool": (_load(drone_radius=True), "'drone_radius' must be a number, got bool"),
     "load multi_agent not bool": (_load(multi_agent=1), "'multi_agent' must be bool, got int"),
-    "step without scenes": (_without(_step(), "scenes"), "missing field 'scenes'"),
-    "step scenes not list": (_step(scenes={"s0": 1}), "'scenes' must be list, got dict"),
-    "step scene not map": (_step(scenes=[[1, 2]]), "scenes\\[0\\] must be a map"),
-    "step poses missing": (_step(scenes=[{"scene_key": "s0"}]), "poses must be an array, got NoneType"),
+    "step without keys": (_without(_step(), "keys"), "missing field 'keys'"),
+    "step counts off": (_step(counts=np.array([5], np.int32)), "counts add up to 5 but poses has"),
+    "step counts not one per key": (_step(keys=["s0", "s1"]), "one per key"),
+    "step negative count": (_step(keys=["s0", "s1"], counts=np.array([2, -1], np.int32)), "non-negative"),
+    "step keys not list": (_step(keys={"s0": 1}), "'keys' must be list, got dict"),
+    "step counts as list": (_step(counts=[1]), "counts must be an integer array"),
+    "step poses missing": (_without(_step(), "poses"), "poses must be an array, got NoneType"),
     "step poses as list": (_step_poses([[0, 0, 1, 1, 0, 0, 0]]), "poses must be an array, got list"),
     "step poses int dtype": (_step_poses(np.zeros((2, 7), np.int32)), "poses dtype int32 must be float32 or float64"),
     "step poses wrong shape": (_step_poses(np.zeros((2, 6), np.float32)), "poses shape \\(2, 6\\) must be \\(n, 7\\)"),
@@ -112,9 +116,8 @@ MALFORMED = {
     "step zero quaternion": (_step_poses(np.zeros((1, 7), np.float32)), "quaternions must be unit"),
     "step far position": (_step_poses(_far_poses()), "positions beyond 1e6 m"),
     "step absurd batch": (_step_poses(_poses(MAX_AGENTS_PER_REQUEST + 1)), "100001 poses exceed the bound 100000"),
-    "step absurd total": (_step(scenes=[{"scene_key": f"s{i}", "poses": _poses(MAX_AGENTS_PER_REQUEST // 2 + 1)}
-                                        for i in range(2)]), "100002 poses in all exceed the bound"),
-    "step bad key": (_step(scenes=[{"scene_key": "../x", "poses": _poses()}]), "scene_key='../x' must be"),
+    "step too many entries": (_step(keys=["s0"] * 1025, counts=np.zeros(1025, np.int32)), "1025 scene entries exceed"),
+    "step bad key": (_step(keys=["../x"]), "scene_key='../x' must be"),
     "step radius missing": (_without(_step(), "search_radius"), "missing field 'search_radius'"),
     "step radius inf": (_step(search_radius=math.inf), "search_radius=inf must be finite"),
     "step radius str": (_step(search_radius="5"), "'search_radius' must be .*got str"),

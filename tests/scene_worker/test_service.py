@@ -9,15 +9,17 @@ import os
 import re
 from pathlib import Path
 
+import struct
+
 import msgpack
 import numpy as np
 import pytest
 
 from tests.helpers import call, client_session
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.protocol.codec import PROTOCOL_VERSION, encode
+from visfly_dist.protocol.codec import MAGIC, PROTOCOL_VERSION, encode
 from visfly_dist.protocol.messages import (
-    Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene,
+    Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene, split_step_result,
 )
 from visfly_dist.scene_worker import shm
 from visfly_dist.scene_worker.queries import ObstacleQueries
@@ -81,8 +83,8 @@ def test_step_matches_in_process_render_and_queries(worker, reference):
     poses = _poses(scene, 20)
     ok, reply = _step(proc, session, poses, search_radius=3.0)
     assert ok, reply
-    (result,) = reply["scenes"]
-    assert result["scene_key"] == "s0"
+    assert reply["counts"].tolist() == [20]
+    (result,) = split_step_result(reply)
     depth, seg = result["images"]["depth"], result["images"]["seg"]
     assert depth.shape == (20, 1, 48, 64) and depth.dtype == np.float32
     assert seg.shape == (20, 1, 32, 32) and seg.dtype == np.uint16
@@ -129,17 +131,17 @@ def _poses_at_origin(n: int) -> np.ndarray:
 def test_render_and_query_can_be_skipped(worker):
     proc, session, _ = worker
     ok, reply = _step(proc, session, _poses_at_origin(2), render=False)
-    assert ok and reply["scenes"][0]["images"] == {} and reply["scenes"][0]["distance"].shape == (2,)
+    assert ok and split_step_result(reply)[0]["images"] == {} and reply["distance"].shape == (2,)
     ok, reply = _step(proc, session, _poses_at_origin(2), query=False)
-    assert ok and set(reply["scenes"][0]) == {"scene_key", "images"}
-    assert reply["scenes"][0]["images"]["depth"].shape == (2, 1, 48, 64)
+    assert ok and set(reply) == {"version", "type", "counts", "images", "timings"}
+    assert split_step_result(reply)[0]["images"]["depth"].shape == (2, 1, 48, 64)
 
 
 def test_step_of_zero_agents_gives_empty_arrays(worker):
     proc, session, _ = worker
     ok, reply = _step(proc, session, np.zeros((0, 7), np.float32))
     assert ok, reply
-    result = reply["scenes"][0]
+    result = split_step_result(reply)[0]
     assert result["images"]["depth"].shape == (0, 1, 48, 64) and result["nearest"].shape == (0, 3)
 
 
@@ -162,17 +164,24 @@ def test_sample_spawn_keeps_clearance_and_is_seeded(worker, reference):
 
 def test_several_scenes_in_one_step_and_reload_and_unload(worker):
     proc, session, _ = worker
-    ok, reply = call(session, proc.rpc_key, LoadScene("s1", "gen:empty", CAMERAS[:1]).to_message())
+    ok, reply = call(session, proc.rpc_key, LoadScene("s1", "gen:empty", CAMERAS).to_message())
     assert ok, reply
     poses = _poses_at_origin(4)
-    step = StepRequest((ScenePoses("s0", poses[:3]), ScenePoses("s1", poses[3:])))
+    step = StepRequest((ScenePoses("s0", poses[:3]), ScenePoses("s1", poses[3:]), ScenePoses("s0", poses[:2])))
     ok, reply = call(session, proc.rpc_key, step.to_message())
     assert ok, reply
-    assert [r["scene_key"] for r in reply["scenes"]] == ["s0", "s1"]
-    assert reply["scenes"][0]["images"]["depth"].shape[0] == 3 and set(reply["scenes"][1]["images"]) == {"depth"}
+    assert reply["counts"].tolist() == [3, 1, 2] and reply["images"]["depth"].shape[0] == 6
+    first, empty, again = split_step_result(reply)
+    np.testing.assert_array_equal(first["images"]["depth"][:2], again["images"]["depth"])
+    assert empty["images"]["depth"].shape == (1, 1, 48, 64)
+
+    ok, reply = call(session, proc.rpc_key, LoadScene("s2", "gen:empty", CAMERAS[:1]).to_message())
+    ok, err = call(session, proc.rpc_key, StepRequest((ScenePoses("s0", poses), ScenePoses("s2", poses))).to_message())
+    assert not ok and err["error"] == "ProtocolError" and "same cameras" in err["message"]
+    assert call(session, proc.rpc_key, UnloadScene("s2").to_message())[0]
 
     ok, reply = call(session, proc.rpc_key, LoadScene("s1", "gen:pillars?seed=2", CAMERAS).to_message())
-    assert ok and set(_step(proc, session, poses, key="s1")[1]["scenes"][0]["images"]) == {"depth", "seg"}
+    assert ok and set(_step(proc, session, poses, key="s1")[1]["images"]) == {"depth", "seg"}
 
     assert call(session, proc.rpc_key, UnloadScene("s1").to_message()) == (True, {"version": PROTOCOL_VERSION, "type": "ok"})
     ok, err = _step(proc, session, poses, key="s1")
@@ -186,7 +195,7 @@ def _good_step() -> dict:
 
 
 def _with_poses(poses) -> dict:
-    return {**_good_step(), "scenes": [{"scene_key": "s0", "poses": poses}]}
+    return {**_good_step(), "keys": ["s0"], "counts": np.array([len(poses)], np.int32), "poses": poses}
 
 
 def _nan_poses() -> np.ndarray:
@@ -195,11 +204,16 @@ def _nan_poses() -> np.ndarray:
     return poses
 
 
+def _framed(header: bytes) -> bytes:
+    return struct.pack("<4sI", MAGIC, len(header)) + header
+
+
 MALFORMED = {
-    "random bytes": (bytes(range(7, 200, 3)), "ProtocolError", "not a valid msgpack message"),
-    "empty payload": (b"", "ProtocolError", "not a valid msgpack message"),
-    "not a map": (msgpack.packb([1, 2]), "ProtocolError", "must be a map"),
-    "wrong version": (msgpack.packb({"version": 999, "type": "health"}), "ProtocolError", "protocol version 999"),
+    "random bytes": (bytes(range(7, 200, 3)), "ProtocolError", "does not start with the framing"),
+    "empty payload": (b"", "ProtocolError", "does not start with the framing"),
+    "garbage header": (_framed(b"\xc1\xff"), "ProtocolError", "not a valid msgpack message"),
+    "not a map": (_framed(msgpack.packb([1, 2])), "ProtocolError", "must be a map"),
+    "wrong version": (_framed(msgpack.packb({"version": 999, "type": "health"})), "ProtocolError", "protocol version 999"),
     "unknown type": ({"type": "explode"}, "ProtocolError", "valid types: load_scene, unload_scene, step, sample_spawn, health"),
     "poses wrong shape": (_with_poses(np.zeros((2, 6), np.float32)), "ProtocolError", "must be \\(n, 7\\)"),
     "poses wrong dtype": (_with_poses(np.zeros((2, 7), np.uint8)), "ProtocolError", "dtype uint8 must be float32"),
@@ -208,7 +222,7 @@ MALFORMED = {
     "path escape": (LoadScene("evil", "../../etc/passwd", CAMERAS).to_message(), "SceneError", "outside the scene roots"),
     "missing file": (LoadScene("gone", "no/such/scene.glb", CAMERAS).to_message(), "SceneError", "no/such/scene.glb"),
     "unknown generator": (LoadScene("g", "gen:volcano", CAMERAS).to_message(), "SceneError", "volcano"),
-    "unknown scene in step": ({**_good_step(), "scenes": [{"scene_key": "nope", "poses": _poses_at_origin(1)}]},
+    "unknown scene in step": ({**_good_step(), "keys": ["nope"]},
                               "SceneError", "scene_key 'nope' is not loaded on this worker; loaded: \\["),
     "unknown scene in spawn": (SampleSpawn("nope", 1, 0.1, "uniform", (0, 0, 0), (1, 1, 1)).to_message(),
                                "SceneError", "'nope' is not loaded"),
@@ -226,7 +240,7 @@ def test_bad_request_gets_an_error_reply_and_the_worker_keeps_serving(worker, na
     assert err["type"] == "error" and err["error"] == error_type, err
     assert re.search(match, err["message"]), err["message"]
     ok, reply = _step(proc, session, _poses_at_origin(2))
-    assert ok and reply["scenes"][0]["images"]["depth"].shape == (2, 1, 48, 64)
+    assert ok and split_step_result(reply)[0]["images"]["depth"].shape == (2, 1, 48, 64)
     assert proc.poll() is None
 
 
@@ -250,4 +264,4 @@ def test_egl_worker_matches_in_process_egl(worker_factory):
     with make_renderer("egl", scene, CAMERAS, drone_radius=RADIUS) as renderer:
         expected = renderer.render(poses.astype(np.float64))
     for name in ("depth", "seg"):
-        np.testing.assert_array_equal(reply["scenes"][0]["images"][name], expected[name])
+        np.testing.assert_array_equal(split_step_result(reply)[0]["images"][name], expected[name])

@@ -52,7 +52,7 @@ def _big_step(session, proc) -> None:
     assert ok, reply
     poses = np.tile(np.array([[2.0, 0.0, 1.5, 1.0, 0.0, 0.0, 0.0]], np.float32), (100, 1))
     ok, reply = call(session, proc.rpc_key, StepRequest((ScenePoses("s0", poses),)).to_message())
-    assert ok and reply["scenes"][0]["images"]["depth"].shape == (100, 1, 64, 64)
+    assert ok and reply["images"]["depth"].shape == (100, 1, 64, 64)
 
 
 def test_sigterm_withdraws_the_token_exits_0_and_leaves_no_orphaned_shared_memory(scene_root):

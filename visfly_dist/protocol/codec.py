@@ -3,12 +3,17 @@
 A message is a msgpack map with ``version`` and ``type``. It is data, never code: no pickle, no
 object hooks beyond the array form below, and every decode is validated and bounded.
 
-Array form (a nested map): ``{"__nd__": 1, "dtype": "<f4", "shape": [n, 7], "data": <bytes>}``.
+Framing: ``b"VFD1"``, a little-endian ``u32`` header length, the msgpack header, then the raw bytes
+of every array, back to back. An array in the header is the map ``{"__nd__": 1, "dtype": "<f4",
+"shape": [n, 7], "offset": o, "nbytes": b}`` pointing into that tail, so the receiver views images in
+place (``np.frombuffer`` on the payload, no copy) and the sender writes each array's bytes once.
 """
 
 from __future__ import annotations
 
 from typing import Any, Mapping
+
+import struct
 
 import msgpack
 import numpy as np
@@ -22,59 +27,90 @@ ALLOWED_DTYPES = frozenset(
     np.dtype(t).str for t in ("bool", "uint8", "uint16", "int32", "int64", "float32", "float64")
 )
 _ND = "__nd__"
+MAGIC = b"VFD1"
+_PREFIX = struct.Struct("<4sI")
 
 
-def _default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        arr = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)  # ascontiguousarray makes 0-d arrays 1-d
-        if arr.dtype.str not in ALLOWED_DTYPES:
-            raise ProtocolError(f"array dtype {arr.dtype} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
-        return {_ND: 1, "dtype": arr.dtype.str, "shape": list(arr.shape), "data": arr.tobytes()}
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, tuple):
-        return list(obj)
-    raise ProtocolError(f"cannot encode {type(obj).__name__}: messages carry only plain data and numpy arrays")
+class _Tail:
+    """The arrays of one message being encoded, in the order they will follow the header."""
+
+    def __init__(self) -> None:
+        self.buffers: list[memoryview] = []
+        self.size = 0
+
+    def default(self, obj: Any) -> Any:
+        if isinstance(obj, np.ndarray):
+            arr = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)  # ascontiguousarray makes 0-d arrays 1-d
+            if arr.dtype.str not in ALLOWED_DTYPES:
+                raise ProtocolError(f"array dtype {arr.dtype} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
+            ref = {_ND: 1, "dtype": arr.dtype.str, "shape": list(arr.shape), "offset": self.size, "nbytes": arr.nbytes}
+            self.buffers.append(memoryview(arr.reshape(-1)).cast("B") if arr.size else memoryview(b""))
+            self.size += arr.nbytes
+            return ref
+        if isinstance(obj, np.generic):
+            return obj.item()
+        if isinstance(obj, tuple):
+            return list(obj)
+        raise ProtocolError(f"cannot encode {type(obj).__name__}: messages carry only plain data and numpy arrays")
 
 
-def _object_hook(d: dict) -> Any:
-    if d.get(_ND) != 1:
-        return d
-    dtype, shape, data = d.get("dtype"), d.get("shape"), d.get("data")
-    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
-        raise ProtocolError(f"array dtype {dtype!r} not allowed; allowed: {sorted(ALLOWED_DTYPES)}")
-    if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape) or len(shape) > 8:
-        raise ProtocolError(f"array shape {shape!r} must be a list of at most 8 non-negative ints")
-    if not isinstance(data, (bytes, bytearray)):
-        raise ProtocolError("array data must be bytes")
-    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
-    if count > MAX_ARRAY_ELEMENTS:
-        raise ProtocolError(f"array of {count} elements exceeds the bound {MAX_ARRAY_ELEMENTS}")
-    dt = np.dtype(dtype)
-    if count * dt.itemsize != len(data):
-        raise ProtocolError(f"array data is {len(data)} bytes but dtype {dtype} and shape {shape} need {count * dt.itemsize}")
-    return np.frombuffer(data, dtype=dt).reshape(shape)
+def _array_hook(payload: bytes, tail_start: int):
+    """The msgpack object hook that turns array references into read-only views on ``payload``."""
+    tail_size = len(payload) - tail_start
+
+    def hook(d: dict) -> Any:
+        if d.get(_ND) != 1:
+            return d
+        dtype, shape, offset, nbytes = d.get("dtype"), d.get("shape"), d.get("offset"), d.get("nbytes")
+        if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+            raise ProtocolError(f"array dtype {dtype!r} not allowed; allowed: {sorted(ALLOWED_DTYPES)}")
+        if not isinstance(shape, list) or len(shape) > 8 or not all(
+                type(s) is int and s >= 0 for s in shape):
+            raise ProtocolError(f"array shape {shape!r} must be a list of at most 8 non-negative ints")
+        if type(offset) is not int or type(nbytes) is not int or offset < 0 or nbytes < 0 \
+                or offset + nbytes > tail_size:
+            raise ProtocolError(f"array bytes [{offset!r}, +{nbytes!r}) lie outside the payload's {tail_size}-byte tail")
+        count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+        if count > MAX_ARRAY_ELEMENTS:
+            raise ProtocolError(f"array of {count} elements exceeds the bound {MAX_ARRAY_ELEMENTS}")
+        dt = np.dtype(dtype)
+        if count * dt.itemsize != nbytes:
+            raise ProtocolError(f"array data is {nbytes} bytes but dtype {dtype} and shape {shape} need {count * dt.itemsize}")
+        return np.frombuffer(payload, dtype=dt, count=count, offset=tail_start + offset).reshape(shape)
+
+    return hook
 
 
 def encode(message: Mapping[str, Any]) -> bytes:
-    """Encode a message map (must hold ``type``); adds the protocol ``version``."""
+    """Encode a message map (must hold ``type``); adds the protocol ``version``.
+
+    Each array's bytes are copied once, into the returned payload.
+    """
     if "type" not in message:
         raise ProtocolError("a message needs a 'type'")
-    body = {"version": PROTOCOL_VERSION, **message}
-    return msgpack.packb(body, default=_default, use_bin_type=True)
+    tail = _Tail()
+    header = msgpack.packb({"version": PROTOCOL_VERSION, **message}, default=tail.default, use_bin_type=True)
+    return b"".join([_PREFIX.pack(MAGIC, len(header)), header, *tail.buffers])
 
 
 def decode(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Decode and check the envelope of a message; raises ProtocolError on anything malformed.
 
-    Arrays come back read-only (views on the payload); copy before writing to them.
+    Arrays come back read-only views on the payload (no copy); copy before writing to them.
     """
     if len(payload) > MAX_MESSAGE_BYTES:
         raise ProtocolError(f"message of {len(payload)} bytes exceeds the bound {MAX_MESSAGE_BYTES}")
+    payload = payload if isinstance(payload, bytes) else bytes(payload)
+    if len(payload) < _PREFIX.size or payload[:4] != MAGIC:
+        raise ProtocolError(f"payload does not start with the framing {MAGIC!r} + header length")
+    _, header_len = _PREFIX.unpack_from(payload)
+    tail_start = _PREFIX.size + header_len
+    if tail_start > len(payload):
+        raise ProtocolError(f"header length {header_len} exceeds the {len(payload)}-byte payload")
     try:
         msg = msgpack.unpackb(
-            bytes(payload), object_hook=_object_hook, raw=False, strict_map_key=True,
-            max_bin_len=MAX_MESSAGE_BYTES, max_str_len=16 * 1024 * 1024,
+            memoryview(payload)[_PREFIX.size:tail_start], object_hook=_array_hook(payload, tail_start), raw=False,
+            strict_map_key=True, max_bin_len=MAX_MESSAGE_BYTES, max_str_len=16 * 1024 * 1024,
         )
     except ProtocolError:
         raise

@@ -70,11 +70,17 @@ class ScenePoses:
 
 @dataclass(frozen=True)
 class StepRequest:
-    """Render every camera of every agent and query obstacles, for several scenes at once.
+    """Render every camera of every agent and query obstacles, for several scene entries at once.
 
-    Reply ``{"type": "step_result", "scenes": [{"scene_key", "images": {camera_name: (n, C, H, W)},
-    "collision": (n,) bool, "inside": (n,) bool, "nearest": (n, 3) f32 world point,
-    "distance": (n,) f32 (capped at search_radius)}], "timings": {stage: seconds}}``.
+    On the wire the entries travel as one pose array: ``{"keys": [scene_key, ...], "counts": (m,)
+    int32, "poses": (sum(counts), 7) f32}``; entry ``i`` owns the next ``counts[i]`` rows. A key may
+    appear more than once (e.g. the spawn poses of a scene's reset agents next to its flying ones);
+    in multi-agent scenes the drones of one entry see each other.
+
+    Reply ``{"type": "step_result", "counts": (m,) int32, "images": {camera_name: (total, C, H, W)},
+    "collision": (total,) bool, "inside": (total,) bool, "nearest": (total, 3) f32 world point,
+    "distance": (total,) f32 (capped at search_radius), "timings": {stage: seconds}}``: rows in
+    request order, so the receiver scatters each array with one index.
     """
 
     scenes: tuple[ScenePoses, ...]
@@ -84,8 +90,33 @@ class StepRequest:
     type: str = field(default="step", init=False)
 
     def to_message(self) -> dict[str, Any]:
-        return {"type": self.type, "scenes": [s.to_message() for s in self.scenes], "render": bool(self.render),
-                "query": bool(self.query), "search_radius": float(self.search_radius)}
+        counts = np.array([len(s.poses) for s in self.scenes], dtype=np.int32)
+        poses = np.concatenate([np.asarray(s.poses, dtype=np.float32).reshape(-1, 7) for s in self.scenes]) \
+            if self.scenes else np.zeros((0, 7), np.float32)
+        return step_message([s.scene_key for s in self.scenes], counts, poses, self.render, self.query,
+                            self.search_radius)
+
+
+def step_message(keys: list[str], counts: np.ndarray, poses: np.ndarray, render: bool = True, query: bool = True,
+                 search_radius: float = 5.0) -> dict[str, Any]:
+    """A step request's wire map built straight from arrays (the aggregator's hot path)."""
+    return {"type": "step", "keys": keys, "counts": np.asarray(counts, dtype=np.int32),
+            "poses": np.ascontiguousarray(poses, dtype=np.float32), "render": bool(render), "query": bool(query),
+            "search_radius": float(search_radius)}
+
+
+def split_step_result(reply: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """A ``step_result`` reply cut back into one map per request entry (tests and tools)."""
+    counts = np.asarray(reply["counts"], dtype=np.int64)
+    ends = np.cumsum(counts)
+    out = []
+    for start, end in zip(ends - counts, ends):
+        entry = {"images": {name: img[start:end] for name, img in reply.get("images", {}).items()}}
+        for key in ("collision", "inside", "nearest", "distance"):
+            if key in reply:
+                entry[key] = reply[key][start:end]
+        out.append(entry)
+    return out
 
 
 @dataclass(frozen=True)
@@ -219,18 +250,20 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
         clearance = _finite(_get(msg, "clearance", (int, float), what), "clearance", 0.0, 100.0)
         return SampleSpawn(_key(msg, what), n, clearance, dist, a, b, seed)
     # step
-    scenes = _get(msg, "scenes", list, what)
-    if len(scenes) > MAX_SCENES_PER_REQUEST:
-        raise ProtocolError(f"{what}: {len(scenes)} scenes exceed the bound {MAX_SCENES_PER_REQUEST}")
-    parsed = []
-    total = 0
-    for i, s in enumerate(scenes):
-        if not isinstance(s, dict):
-            raise ProtocolError(f"{what}: scenes[{i}] must be a map")
-        poses = _poses(s.get("poses"), f"{what}.scenes[{i}]")
-        total += poses.shape[0]
-        parsed.append(ScenePoses(_key(s, f"{what}.scenes[{i}]"), poses))
-    if total > MAX_AGENTS_PER_REQUEST:
-        raise ProtocolError(f"{what}: {total} poses in all exceed the bound {MAX_AGENTS_PER_REQUEST}")
+    keys = _get(msg, "keys", list, what)
+    if len(keys) > MAX_SCENES_PER_REQUEST:
+        raise ProtocolError(f"{what}: {len(keys)} scene entries exceed the bound {MAX_SCENES_PER_REQUEST}")
+    for i, key in enumerate(keys):
+        _key({"scene_key": key}, f"{what}.keys[{i}]")
+    counts = msg.get("counts")
+    if not isinstance(counts, np.ndarray) or counts.dtype.kind not in "iu" or counts.shape != (len(keys),):
+        raise ProtocolError(f"{what}: counts must be an integer array of shape ({len(keys)},), one per key")
+    if np.any(counts < 0):
+        raise ProtocolError(f"{what}: counts must be non-negative")
+    poses = _poses(msg.get("poses"), what)
+    if int(counts.sum()) != poses.shape[0]:
+        raise ProtocolError(f"{what}: counts add up to {int(counts.sum())} but poses has {poses.shape[0]} rows")
+    ends = np.cumsum(counts)
+    parsed = tuple(ScenePoses(key, poses[end - n:end]) for key, n, end in zip(keys, counts.tolist(), ends.tolist()))
     radius = _finite(_get(msg, "search_radius", (int, float), what), "search_radius", 0.0, 1e4)
-    return StepRequest(tuple(parsed), bool(msg.get("render", True)), bool(msg.get("query", True)), radius)
+    return StepRequest(parsed, _get(msg, "render", bool, what), _get(msg, "query", bool, what), radius)

@@ -24,7 +24,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from visfly_dist.errors import ConfigError, VisflyError
+from visfly_dist.errors import ConfigError, ProtocolError, VisflyError
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode, error_message
 from visfly_dist.protocol.messages import (
@@ -224,21 +224,27 @@ class SceneWorker:
                 "backend": loaded.renderer.name, "metadata": scene.metadata}
 
     def _step(self, request: StepRequest, timings: dict[str, float]) -> dict[str, Any]:
+        """Every entry rendered and queried; the reply's arrays hold all entries' rows in order."""
         # Resolve every key before any work, so a bad key costs nothing.
         loaded = [self._scenes.get(s.scene_key) for s in request.scenes]
+        counts = np.array([len(s.poses) for s in request.scenes], dtype=np.int32)
+        reply: dict[str, Any] = {"type": "step_result", "counts": counts, "images": {}}
         timings.setdefault("render_s", 0.0)
         timings.setdefault("query_s", 0.0)
-        results = []
-        for item, scene in zip(request.scenes, loaded):
-            result: dict[str, Any] = {"scene_key": item.scene_key, "images": {}}
-            if request.render:
-                with self._timer.time("render", timings):
-                    result["images"] = _render(scene, item.poses)
-            if request.query:
-                with self._timer.time("query", timings):
-                    result.update(_query(scene, item.poses, request.search_radius))
-            results.append(result)
-        return {"type": "step_result", "scenes": results}
+        if request.render and loaded:
+            cameras = loaded[0].cameras
+            if any(scene.cameras != cameras for scene in loaded):
+                raise ProtocolError("the scenes of one step request must carry the same cameras")
+            with self._timer.time("render", timings):
+                parts = [_render(scene, item.poses) for item, scene in zip(request.scenes, loaded)]
+                reply["images"] = {c.name: _concat([p[c.name] for p in parts], (0, *c.shape), c.dtype)
+                                   for c in cameras}
+        if request.query:
+            with self._timer.time("query", timings):
+                parts = [_query(scene, item.poses, request.search_radius) for item, scene in zip(request.scenes, loaded)]
+                for key, shape, dtype in QUERY_FIELDS:
+                    reply[key] = _concat([p[key] for p in parts], shape, dtype)
+        return reply
 
     def _sample_spawn(self, request: SampleSpawn) -> dict[str, Any]:
         loaded = self._scenes.get(request.scene_key)
@@ -254,6 +260,17 @@ class SceneWorker:
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
                 "backend": self.backend, "scenes": self._scenes.keys(),
                 "uptime_s": time.monotonic() - self._started, "timings": self._timer.summary()}
+
+
+QUERY_FIELDS = (("collision", (0,), bool), ("inside", (0,), bool), ("nearest", (0, 3), np.float32),
+                ("distance", (0,), np.float32))
+
+
+def _concat(parts: list[np.ndarray], empty_shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """One array of every entry's rows (no copy for a single entry)."""
+    if len(parts) == 1:
+        return parts[0]
+    return np.concatenate(parts) if parts else np.zeros(empty_shape, dtype=dtype)
 
 
 def _render(scene: LoadedScene, poses: np.ndarray) -> dict[str, np.ndarray]:
