@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -19,28 +20,40 @@ def _victim(agg):
     return worker, agg.local_worker_pids()[worker], np.isin(agg.agent_scene, slots)
 
 
-def test_sigkill_moves_scenes_then_no_workers_left():
-    with make_aggregator(pool={"respawn": False}) as agg:
+def _observe_until(agg, poses, condition, timeout=60.0):
+    """Step until ``condition(obs)`` holds (scenes move in the background, between steps)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        obs = agg.observe(poses)
+        if condition(obs) or time.monotonic() > deadline:
+            return obs
+        time.sleep(0.05)
+
+
+def test_sigkill_moves_scenes_in_the_background_then_no_workers_left():
+    with make_aggregator(pool={"respawn": False, "outage_limit_s": 2.0}) as agg:
         poses = spawn_poses(agg)
         before = agg.observe(poses)
         victim, pid, affected = _victim(agg)
         os.kill(pid, signal.SIGKILL)
 
-        obs = agg.observe(poses)
+        obs = agg.observe(poses)  # exactly the victim's agents lose this step; they keep their last good data
         assert obs.lost.tolist() == affected.tolist()
-        np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])  # fresh or last good: same poses
+        np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])
         survivor = [w for w in agg.workers]
         assert len(survivor) == 1 and victim not in survivor
-        assert set(agg.assignment().values()) == set(survivor)
 
-        again = agg.observe(poses)
-        assert not again.lost.any()
+        again = _observe_until(agg, poses, lambda o: not o.lost.any())  # re-placed without blocking a step
+        assert not again.lost.any() and set(agg.assignment().values()) == set(survivor)
         np.testing.assert_array_equal(again.images["depth"], before.images["depth"])
         np.testing.assert_array_equal(again.distance, before.distance)
 
         os.kill(agg.local_worker_pids()[survivor[0]], signal.SIGKILL)
-        with pytest.raises(NoWorkersError, match="no live scene worker left"):
-            agg.observe(poses)
+        t0 = time.monotonic()
+        with pytest.raises(NoWorkersError, match="no scene worker reachable for outage_limit_s=2"):
+            for _ in range(3):
+                agg.observe(poses)
+        assert time.monotonic() - t0 < 2.0 + 3 * agg.pool_config.step_timeout_s
 
 
 def test_hung_worker_is_killed_replaced_and_rebalanced():
@@ -55,12 +68,13 @@ def test_hung_worker_is_killed_replaced_and_rebalanced():
         assert obs.lost.tolist() == affected.tolist()
         assert obs.timings["total_s"] >= 2.0
         np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])
-        assert wait_for(lambda: not pid_alive(pid), timeout=10)  # the hung worker was killed
+        assert wait_for(lambda: not pid_alive(pid), timeout=10)  # the hung worker was killed (others answer)
         assert wait_for(lambda: len(agg.workers) == 2, timeout=60), agg.workers
         assert victim not in agg.workers
 
-        again = agg.observe(poses)  # the replacement gets its share of the scenes back
-        assert not again.lost.any()
+        def balanced(o):
+            return not o.lost.any() and sorted(list(agg.assignment().values()).count(w) for w in agg.workers) == [2, 2]
+
+        again = _observe_until(agg, poses, balanced)  # the replacement gets its share back, in the background
+        assert balanced(again), agg.assignment()
         np.testing.assert_array_equal(again.images["depth"], before.images["depth"])
-        per_worker = sorted(list(agg.assignment().values()).count(w) for w in agg.workers)
-        assert per_worker == [2, 2]

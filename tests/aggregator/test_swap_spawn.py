@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
+
+from tests.helpers import wait_for
 
 from tests.aggregator.conftest import make_aggregator
 
@@ -34,20 +38,40 @@ def test_same_seed_same_spawns(pair):
     assert not np.array_equal(_spawn(a, [0, 1, 2, 3]), first[:4])  # the generator moves on
 
 
-def test_swap_after_enough_resets(pair):
+def _step_until_switched(agg, poses, timeout=60.0):
+    """Steps go on while the next scene loads; the swap shows once it is ready."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        obs = agg.observe(poses)
+        switched = agg.take_switched()
+        if switched.any():
+            return obs, switched
+        time.sleep(0.05)
+    raise AssertionError("no scene swap within the timeout")
+
+
+def test_swap_after_enough_resets_happens_in_the_background(pair):
     agg = pair[0]
     before = [agg.slot_source(s) for s in range(2)]
-    assert not agg.note_resets(np.array([0, 1])).any()       # slot 0: 2 resets
-    assert not agg.note_resets(np.array([2])).any()          # slot 1: 1 reset
-    mask = agg.note_resets(np.array([0, 3]))                 # slot 0: 3 -> swap; slot 1: 2
-    assert mask.tolist() == [True, True, False, False]
-    assert agg.slot_source(0) != before[0] and agg.slot_source(1) == before[1]
-    mask = agg.note_resets(np.array([2]))                    # slot 1: 3 -> swap
-    assert mask.tolist() == [False, False, True, True]
-    assert agg.slot_source(1) not in before
     poses = np.zeros((4, 7))
-    poses[:, :3] = _spawn(agg, [0, 1, 2, 3])                 # pools refetched from the new scenes
+    poses[:, :3] = _spawn(agg, [0, 1, 2, 3])
     poses[:, 3] = 1.0
+    agg.note_resets(np.array([0, 1]))                         # slot 0: 2 resets
+    agg.note_resets(np.array([2]))                            # slot 1: 1 reset
+    assert not agg.observe(poses).lost.any() and not agg.take_switched().any()
+    agg.note_resets(np.array([0, 3]))                         # slot 0: 3 -> swap; slot 1: 2
+    assert agg.slot_source(0) == before[0]                    # still flying in the old scene
+    obs, switched = _step_until_switched(agg, poses)
+    assert not obs.lost.any()
+    assert switched.tolist() == [True, True, False, False]
+    assert agg.slot_source(0) != before[0] and agg.slot_source(1) == before[1]
+    agg.note_resets(np.array([2]))                            # slot 1: 3 -> swap
+    _, switched = _step_until_switched(agg, poses)
+    assert switched.tolist() == [False, False, True, True]
+    assert agg.slot_source(1) not in before
+    poses[:, :3] = _spawn(agg, [0, 1, 2, 3])                  # pools of the new scenes were fetched before the switch
     obs = agg.observe(poses)
     assert not obs.lost.any() and not obs.collision.any()
-
+    assert wait_for(lambda: (agg.observe(poses), not agg.background_busy())[1], timeout=30)
+    health = {h["worker_id"]: h["scenes"] for h in agg.health()}
+    assert sorted(k for keys in health.values() for k in keys) == sorted(s.key for s in agg.table.slots)  # old keys unloaded

@@ -1,27 +1,27 @@
-"""The aggregator: scenes in slots on workers, one fan-out per observation, and failure recovery.
+"""The aggregator: poses in, observations out, one round trip per step; scenes kept served.
 
-Agents are grouped in slots: agent ``i`` flies in slot ``i // agents_per_scene``. Each slot holds
-one scene (a concrete source) loaded on one worker under the key ``s<slot>``. The env owns the
-dynamics; the aggregator turns poses into observations and keeps the slots served.
+It ties three parts together: the slot table (:mod:`.slots`, pure placement plans), the worker
+pool (:mod:`.pool`, the only I/O) and the assembler (:mod:`.assembler`, replies into buffers).
 
-Failure invariants (the core of this module):
-- A slot is served by a worker only while that worker is live (liveliness token present, not
-  banned) at the generation the scene was loaded at. Anything else makes the slot an orphan.
-- A worker that dies (token DELETE), misses a deadline (no reply, ``Timeout``) or restarted
-  (new generation) is dropped; every slot it held becomes an orphan at once, and the agents of
-  those slots are marked *pending lost*.
-- Orphans are placed on the least-loaded live workers (LoadScene, all in flight). With no live
-  worker, a respawned local one is waited for (``startup_timeout_s``); with none possible,
-  NoWorkersError. Placement repeats until no orphan is left, each round dropping the workers that
-  failed to load, so it ends: every round either places all orphans or drops a worker.
-- ``observe`` reports ``lost=True`` exactly for the requested agents that were pending lost, then
-  clears them: each agent whose scene moved is reported lost once. Lost agents get fresh data from
-  the new worker within the same call if the call is still under ``step_timeout_s``, else their
-  last good data (zeros and ``far`` depth if none).
-- No wait is unbounded: every request carries a timeout; a call makes at most a bounded number of
-  rounds (the initial batch, placement rounds bounded by the number of workers, one refetch).
-- A worker's error reply is a bug (RemoteError), except an unknown scene key (the worker
-  restarted between our liveliness check and the request): reload there and retry once.
+One step is :meth:`Aggregator.submit` then :meth:`Aggregator.collect`: ``submit`` groups the poses
+by worker and sends ONE request per worker (with the spawn poses of agents about to reset, so
+their first observation comes in the same round trip) and returns at once; ``collect`` waits for
+that ticket's replies and scatters them. Several tickets may be in flight (the async env uses two
+groups of agents), and :meth:`wait_any` tells which is ready.
+
+Everything slow happens in the background, never inside a step: scene loads for orphans,
+rebalancing and scene swaps are moves (load under a fresh key, switch when the load answered,
+unload the old key two collects later, when no request in flight can still name it); spawn pools
+are refreshed ahead of use.
+
+Failure policy (one place, :meth:`_handle_failure`):
+- a worker that dies (liveliness DELETE), misses a deadline or answers ``unknown scene`` (it
+  restarted) loses its slots: they become orphans, placed on live workers in the background; the
+  agents of a failed request get their last good data and ``lost=True`` (the env truncates them);
+- a local worker that missed a deadline is replaced only while other workers are reachable: when
+  none is (the router or the network is down), nobody is killed, and the next step waits for
+  workers to come back, up to ``PoolConfig.outage_limit_s``, then raises :class:`NoWorkersError`;
+- every wait is bounded: a request by ``step_timeout_s``, a load by ``startup_timeout_s``.
 """
 
 from __future__ import annotations
@@ -34,65 +34,64 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from visfly_dist.aggregator.assembler import (
+    Observation, blank_observation, copy_rows, empty_observation, scatter_reply,
+)
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
-from visfly_dist.aggregator.pool import BatchTimings, Reply, WorkerPool
-from visfly_dist.errors import ConfigError, NoWorkersError, ProtocolError, RemoteError
+from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
+from visfly_dist.aggregator.slots import Move, SlotTable
+from visfly_dist.errors import ConfigError, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene
+from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, UnloadScene, step_message
 
 log = logging.getLogger(__name__)
 
 SPAWN_POOL_MIN = 256
+UNLOAD_DELAY_COLLECTS = 2
+
+__all__ = ["Aggregator", "Observation", "StepTicket"]
+
+
+def is_unknown_scene(err: RemoteError) -> bool:
+    """The worker does not hold a scene key we sent: it restarted since the scene was loaded."""
+    return getattr(err, "code", None) == "unknown_scene" or (
+        err.error_type == "SceneError" and "is not loaded on this worker" in err.message)
 
 
 @dataclass
-class Observation:
-    """What the workers saw for ``k`` agents, in the order they were asked for.
+class _WorkerPart:
+    """One worker's share of a ticket: its request, and where its reply rows go."""
 
-    Attributes:
-        images: camera name -> ``(k, C, H, W)`` array of the camera's dtype.
-        collision: ``(k,)`` bool, the drone's sphere touches an obstacle.
-        inside: ``(k,)`` bool, the drone is inside a closed obstacle.
-        nearest: ``(k, 3)`` float32 nearest obstacle point (world, m).
-        distance: ``(k,)`` float32 distance to it (m), capped at the search radius.
-        lost: ``(k,)`` bool, the agent's scene moved to another worker (its worker failed): the
-            env truncates these agents. Their data is fresh if it could be re-fetched in time,
-            else the last good one.
-        timings: seconds per stage: ``fanout_s``, ``wait_s``, ``decode_s``, ``assemble_s``,
-            the slowest worker's own stages (e.g. ``render_s``, ``query_s``), ``transport_s``
-            (fan-out and wait minus the slowest worker's total), ``recovery_s`` when any, and ``total_s``.
-    """
-
-    images: dict[str, np.ndarray]
-    collision: np.ndarray
-    inside: np.ndarray
-    nearest: np.ndarray
-    distance: np.ndarray
-    lost: np.ndarray
-    timings: dict[str, float] = field(default_factory=dict)
+    pending: Pending
+    slots: list[int]
+    obs_rows: np.ndarray     # rows of ticket.obs, in reply order
+    spawn_rows: np.ndarray   # rows of ticket.spawn_obs, after those
 
 
 @dataclass
-class _Slot:
-    """One scene slot; ``worker`` is ``None`` while it is an orphan."""
+class StepTicket:
+    """A step in flight: what was asked, and the buffers its replies will fill."""
 
-    index: int
-    source: str
-    worker: str | None = None
-    generation: int = 0
-    bounds: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
-    metadata: dict[str, Any] = field(default_factory=dict)
-    resets: int = 0
-
-    @property
-    def key(self) -> str:
-        return f"s{self.index}"
+    agents: np.ndarray
+    spawn_agents: np.ndarray
+    obs: Observation
+    spawn_obs: Observation
+    parts: list[_WorkerPart]
+    started: float
+    timings: BatchTimings = field(default_factory=BatchTimings)
+    collected: bool = False
 
 
-def _is_unknown_scene(err: RemoteError) -> bool:
-    """The worker does not hold a scene key we sent (it restarted): the worker's SceneTable wording."""
-    return err.error_type == "SceneError" and "is not loaded on this worker" in err.message
+@dataclass
+class _Background:
+    """A request the aggregator does not wait for: a load for a move, a spawn pool, an unload."""
+
+    kind: str
+    pending: Pending
+    slot: int = -1
+    move: Move | None = None
+    spec: tuple | None = None
 
 
 class Aggregator:
@@ -134,15 +133,19 @@ class Aggregator:
         self.seed = int(seed)
         self.run_id = pool.run_id or new_run_id()
         self.dataset = SceneDataset(scenes.sources, pool.scene_roots, scenes.shuffle, scenes.seed)
-
-        aps = scenes.agents_per_scene
-        self.agents_per_scene = aps
+        self.agents_per_scene = scenes.agents_per_scene
         self.num_agents = scenes.num_agents
-        self.agent_scene = np.arange(self.num_agents, dtype=np.int64) // aps
-        self._slots = [_Slot(i, source) for i, source in enumerate(self.dataset.take(scenes.num_scenes))]
-        self._pending_lost = np.zeros(self.num_agents, dtype=bool)
-        self._last = self._blank(self.num_agents)
+        self.table = SlotTable(self.dataset.take(scenes.num_scenes), self.agents_per_scene)
+        self.agent_scene = self.table.agent_scene
+        self._last = blank_observation(cameras, self.num_agents, self.search_radius)
+        self._switched = np.zeros(self.num_agents, dtype=bool)
+        self._background: list[_Background] = []
+        self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
+        self._collects = 0
         self._spawn_pools: dict[tuple, np.ndarray] = {}
+        self._spawn_draws: dict[tuple, int] = {}
+        self._spawn_refresh: dict[tuple, int] = {}
+        self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
         self._rng = np.random.default_rng(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
         self._started = False
@@ -168,7 +171,7 @@ class Aggregator:
                     f"run {self.run_id!r}: {len(live)} worker(s) came up within startup_timeout_s="
                     f"{cfg.startup_timeout_s}, min_workers={cfg.min_workers} needed"
                     + (f"; {report}" if report else "; check the connect endpoints and the workers' --run-id"))
-            self._place_orphans()
+            self._place_all_now()
             self._started = True
         except BaseException:
             self.close()
@@ -197,164 +200,177 @@ class Aggregator:
 
     @property
     def num_scenes(self) -> int:
-        return len(self._slots)
+        return len(self.table)
 
     def assignment(self) -> dict[int, str | None]:
         """Slot index -> id of the worker serving it."""
-        return {s.index: s.worker for s in self._slots}
+        return {s.index: s.worker for s in self.table.slots}
 
     def slot_source(self, slot: int) -> str:
         """The concrete source loaded in ``slot`` (a seeded gen spec or a root-relative path)."""
-        return self._slots[slot].source
+        return self.table.slots[slot].source
 
     def agent_bounds(self) -> np.ndarray:
         """``(N, 2, 3)`` float64 flight box of each agent's scene."""
-        return np.stack([self._slots[s].bounds for s in self.agent_scene]).astype(np.float64)
+        bounds = np.stack([s.bounds for s in self.table.slots]).astype(np.float64)
+        return bounds[self.agent_scene]
 
     def scene_metadata(self, slot: int) -> dict[str, Any]:
         """The metadata the worker reported for ``slot``'s scene, plus its ``source``."""
-        meta = dict(self._slots[slot].metadata)
-        meta.setdefault("source", self._slots[slot].source)
+        meta = dict(self.table.slots[slot].metadata)
+        meta.setdefault("source", self.table.slots[slot].source)
         return meta
 
     def local_worker_pids(self) -> dict[str, int]:
         """Pid of each local worker process (for tests and diagnostics)."""
         return self._pool.local_pids()
 
-    # ----- observe ---------------------------------------------------------------------------
+    def background_busy(self) -> bool:
+        """Whether a scene load, spawn refresh or unload is still in flight (tests, diagnostics)."""
+        return bool(self._background)
+
+    # ----- one step --------------------------------------------------------------------------
 
     def observe(self, poses: np.ndarray, agents: np.ndarray | None = None) -> Observation:
-        """Render every camera and query obstacles for the given agents.
+        """Render every camera and query obstacles for the given agents (submit + collect).
 
         Args:
             poses: ``(N, 7)`` rows ``[x, y, z, qw, qx, qy, qz]`` of every agent, or ``(k, 7)``
                 rows of ``agents`` only.
             agents: indices of the agents to observe (default: all, in order).
+        """
+        return self.collect(self.submit(poses, agents))[0]
 
-        Returns:
-            The observation of ``agents``, in their order.
+    def submit(self, poses: np.ndarray, agents: np.ndarray | None = None, spawn_poses: np.ndarray | None = None,
+               spawn_agents: np.ndarray | None = None) -> StepTicket:
+        """Send one request per worker for ``agents`` (and the spawn poses of ``spawn_agents``); no wait.
+
+        Args:
+            poses: as in :meth:`observe`.
+            agents: agents to observe (default all).
+            spawn_poses: ``(m, 7)`` poses at which to render ``spawn_agents`` too (their next episode's
+                start), in the same requests.
+            spawn_agents: ``(m,)`` agent indices (each agent's own scene is used).
         """
         self._require_started()
         t_start = time.perf_counter()
         agents = self._agent_index(agents)
         rows = self._pose_rows(poses, agents)
-        timings = BatchTimings()
-        t0 = time.perf_counter()
+        spawn_agents = self._agent_index(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
+        spawn_rows = self._pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents)
         self._maintain()
-        recovery_s = time.perf_counter() - t0
-
-        positions: dict[int, np.ndarray] = {}  # slot -> positions in `agents`
-        for slot in np.unique(self.agent_scene[agents]):
-            positions[int(slot)] = np.flatnonzero(self.agent_scene[agents] == slot)
-        results, worker_timings = self._step_slots(list(positions), positions, rows, timings)
-
-        refetch = [s for s in positions if s not in results]
-        if refetch:
-            t0 = time.perf_counter()
-            self._place_orphans()
-            if time.perf_counter() - t_start < self.pool_config.step_timeout_s:
-                more, more_timings = self._step_slots(refetch, positions, rows, timings, retry_unknown=False)
-                results.update(more)
-                worker_timings += more_timings
-            recovery_s += time.perf_counter() - t0
-
+        ticket = StepTicket(agents, spawn_agents, empty_observation(self.cameras, len(agents)),
+                            empty_observation(self.cameras, len(spawn_agents)), [], t_start)
+        obs_plan = self._plan_entries(agents)
+        spawn_plan = self._plan_entries(spawn_agents)
+        requests, parts = [], []
+        for wid in sorted(set(obs_plan) | set(spawn_plan)):
+            o_keys, o_counts, o_rows, o_slots = obs_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
+            s_keys, s_counts, s_rows, _ = spawn_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
+            poses_w = np.concatenate([rows[o_rows], spawn_rows[s_rows]])
+            message = step_message(o_keys + s_keys, np.array(o_counts + s_counts, np.int32), poses_w,
+                                   search_radius=self.search_radius)
+            requests.append((wid, message))
+            parts.append((o_slots, o_rows, s_rows))
         t0 = time.perf_counter()
-        obs = self._assemble(agents, rows, positions, results)
-        assemble_s = time.perf_counter() - t0
-        obs.timings = self._timings(timings, worker_timings, assemble_s, recovery_s, time.perf_counter() - t_start)
-        return obs
+        for (slots, o_rows, s_rows), pending in zip(parts, self._pool.send(requests, self.pool_config.step_timeout_s)):
+            ticket.parts.append(_WorkerPart(pending, slots, o_rows, s_rows))
+        ticket.timings.fanout_s = time.perf_counter() - t0
+        ticket.timings.extra["plan_s"] = t0 - t_start
+        return ticket
 
-    def _step_slots(self, slots: list[int], positions: dict[int, np.ndarray], rows: np.ndarray,
-                    timings: BatchTimings, retry_unknown: bool = True) -> tuple[dict[int, dict], list[dict]]:
-        """One StepRequest per worker covering ``slots``; returns per-slot results and worker timings.
+    def ready(self, ticket: StepTicket) -> bool:
+        """Whether every reply of ``ticket`` is in (``collect`` will not wait)."""
+        return all(p.pending.done() for p in ticket.parts)
 
-        Slots of failing workers get no result (those workers are dropped, their slots orphaned).
+    def wait_any(self, tickets: Sequence[StepTicket], timeout_s: float | None = None) -> int | None:
+        """Index of the first of ``tickets`` whose replies are all in (``None`` on timeout)."""
+        timeout = self.pool_config.step_timeout_s + 5.0 if timeout_s is None else timeout_s
+        return self._pool.wait_any([[p.pending for p in t.parts] for t in tickets], timeout)
+
+    def collect(self, ticket: StepTicket) -> tuple[Observation, Observation]:
+        """Wait for ``ticket``'s replies; the observation of its agents and of its spawn poses.
+
+        Agents whose worker failed get their last good data and ``lost=True``; spawn rows that
+        could not be rendered have ``lost=True`` (the env renders those again when it needs them).
+        ``obs.timings``: ``fanout_s``, ``wait_s``, ``decode_s``, ``assemble_s``, the slowest worker's
+        own stages (``render_s``, ``query_s``, ...), ``transport_s`` (fan-out and wait minus the
+        slowest worker's total) and ``total_s`` (submit to collect).
         """
-        by_worker: dict[str, list[int]] = {}
-        for s in slots:
-            if self._slots[s].worker is not None:
-                by_worker.setdefault(self._slots[s].worker, []).append(s)
-        requests = []
-        for wid in sorted(by_worker):
-            scenes = tuple(ScenePoses(self._slots[s].key, rows[positions[s]]) for s in by_worker[wid])
-            requests.append((wid, StepRequest(scenes, search_radius=self.search_radius).to_message()))
-        replies = self._pool.call(requests, self.pool_config.step_timeout_s, timings)
-        results: dict[int, dict] = {}
-        worker_timings: list[dict] = []
-        redo: list[int] = []
-        for reply in replies:
-            if reply.failure is not None:
-                self._orphan_worker_slots(reply.worker_id, drop=True, reason=reply.failure)
-            elif reply.error is not None:
-                if not (retry_unknown and _is_unknown_scene(reply.error)):
-                    raise reply.error
-                # The worker restarted under the same id since we loaded: reload, retry once.
-                self._orphan_worker_slots(reply.worker_id, drop=False, reason=f"forgot its scenes ({reply.error})")
-                redo += by_worker[reply.worker_id]
-            else:
-                worker_timings.append(dict(reply.message.get("timings", {})))
-                got = {scene.get("scene_key"): scene for scene in reply.message.get("scenes", [])}
-                for s in by_worker[reply.worker_id]:
-                    results[s] = self._checked(reply.worker_id, got.get(self._slots[s].key), s, len(positions[s]))
-        if redo:
-            self._place_orphans()
-            more, more_timings = self._step_slots(redo, positions, rows, timings, retry_unknown=False)
-            results.update(more)
-            worker_timings += more_timings
-        return results, worker_timings
-
-    def _checked(self, wid: str, scene: dict | None, slot: int, n: int) -> dict:
-        """A worker's result for one slot, checked against what was asked (ProtocolError if not)."""
-        if scene is None:
-            raise ProtocolError(f"worker {wid!r} sent no result for scene key {self._slots[slot].key!r}")
-        images = scene.get("images") or {}
-        arrays = [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in self.cameras]
-        arrays += [(key, scene.get(key), shape) for key, shape in
-                   (("collision", (n,)), ("inside", (n,)), ("nearest", (n, 3)), ("distance", (n,)))]
-        for name, value, shape in arrays:
-            if not isinstance(value, np.ndarray) or value.shape != shape:
-                got = getattr(value, "shape", type(value).__name__)
-                raise ProtocolError(f"worker {wid!r} sent {name} of shape {got} for slot {slot}; expected {shape}")
-        return scene
-
-    def _assemble(self, agents: np.ndarray, rows: np.ndarray, positions: dict[int, np.ndarray],
-                  results: dict[int, dict]) -> Observation:
-        k = len(agents)
-        out = self._blank(k)
-        for slot, pos in positions.items():
-            idx = agents[pos]
-            res = results.get(slot)
-            if res is None:  # last good data of these agents
-                for name in out["images"]:
-                    out["images"][name][pos] = self._last["images"][name][idx]
-                for key in ("collision", "inside", "nearest", "distance"):
-                    out[key][pos] = self._last[key][idx]
+        if ticket.collected:
+            raise ConfigError("this ticket was already collected")
+        ticket.collected = True
+        replies = self._pool.gather([p.pending for p in ticket.parts], ticket.timings)
+        t0 = time.perf_counter()
+        worker_timings = []
+        for part, reply in zip(ticket.parts, replies):
+            if reply.message is None:
+                self._handle_failure(reply, part.slots)
                 continue
-            for cam in self.cameras:
-                img = res["images"][cam.name]
-                out["images"][cam.name][pos] = img
-                self._last["images"][cam.name][idx] = img
+            n_obs = len(part.obs_rows)
+            message = reply.message
+            worker_timings.append(dict(message.get("timings", {})))
+            head = {k: (v[:n_obs] if k != "images" else {c: img[:n_obs] for c, img in v.items()})
+                    for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
+            tail = {k: (v[n_obs:] if k != "images" else {c: img[n_obs:] for c, img in v.items()})
+                    for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
+            scatter_reply(ticket.obs, part.obs_rows, head, self.cameras, reply.worker_id)
+            if len(part.spawn_rows):
+                scatter_reply(ticket.spawn_obs, part.spawn_rows, tail, self.cameras, reply.worker_id)
+        stale = np.flatnonzero(ticket.obs.lost)
+        if len(stale):
+            copy_rows(ticket.obs, stale, self._last, ticket.agents[stale])
+        fresh = np.flatnonzero(~ticket.obs.lost)
+        self._remember(ticket.obs, fresh, ticket.agents[fresh])
+        assemble_s = time.perf_counter() - t0
+        self._collects += 1
+        self._apply_background()
+        ticket.obs.timings = self._timings(ticket.timings, worker_timings, assemble_s,
+                                           time.perf_counter() - ticket.started)
+        return ticket.obs, ticket.spawn_obs
+
+    def take_switched(self) -> np.ndarray:
+        """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
+        out, self._switched = self._switched, np.zeros(self.num_agents, dtype=bool)
+        return out
+
+    def _remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
+        """Keep the fresh rows as the agents' last good data, sharing ``obs``'s arrays when it has all."""
+        if len(agents) == self.num_agents and np.array_equal(agents, np.arange(self.num_agents)):
+            self._last = obs
+            return
+        if self._last is not None and len(rows):
+            last = self._last
+            if any(np.shares_memory(last.images[c.name], obs.images[c.name]) for c in self.cameras):
+                last = last.take(np.arange(self.num_agents))
+            for name, image in last.images.items():
+                image[agents] = obs.images[name][rows]
             for key in ("collision", "inside", "nearest", "distance"):
-                out[key][pos] = res[key]
-                self._last[key][idx] = res[key]
-        lost = self._pending_lost[agents].copy()
-        self._pending_lost[agents] = False
-        return Observation(out["images"], out["collision"], out["inside"], out["nearest"], out["distance"], lost)
+                getattr(last, key)[agents] = getattr(obs, key)[rows]
+            self._last = last
 
-    def _blank(self, n: int) -> dict[str, Any]:
-        """Arrays for ``n`` agents holding "nothing seen": far depth, no obstacle within reach."""
-        images = {}
-        for cam in self.cameras:
-            fill = cam.far if cam.kind == "depth" else 0
-            images[cam.name] = np.full((n, *cam.shape), fill, dtype=cam.dtype)
-        return {"images": images, "collision": np.zeros(n, bool), "inside": np.zeros(n, bool),
-                "nearest": np.zeros((n, 3), np.float32), "distance": np.full(n, self.search_radius, np.float32)}
+    def _plan_entries(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]:
+        """Per worker: scene keys, counts, the rows of ``agents`` in request order, and the slots."""
+        if len(agents) == 0:
+            return {}
+        slot_of = self.agent_scene[agents]
+        order = np.argsort(slot_of, kind="stable")
+        slots, starts, counts = np.unique(slot_of[order], return_index=True, return_counts=True)
+        out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int]]] = {}
+        for slot, start, count in zip(slots.tolist(), starts.tolist(), counts.tolist()):
+            s = self.table.slots[slot]
+            if s.worker is None:
+                continue
+            keys, cnts, parts, served = out.setdefault(s.worker, ([], [], [], []))
+            keys.append(s.key)
+            cnts.append(count)
+            parts.append(order[start:start + count])
+            served.append(slot)
+        return {w: (k, c, np.concatenate(p), sl) for w, (k, c, p, sl) in out.items()}
 
-    @staticmethod
-    def _timings(batch: BatchTimings, workers: list[dict], assemble_s: float, recovery_s: float,
-                 total_s: float) -> dict[str, float]:
+    def _timings(self, batch: BatchTimings, workers: list[dict], assemble_s: float, total_s: float) -> dict[str, float]:
         out = {"fanout_s": batch.fanout_s, "wait_s": batch.wait_s, "decode_s": batch.decode_s,
-               "assemble_s": assemble_s}
+               "assemble_s": assemble_s, **batch.extra}
         own = set(out)
         worker_total = 0.0
         for wt in workers:
@@ -365,50 +381,211 @@ class Aggregator:
             worker_total = max(worker_total, float(wt.get("total_s", sum(stages.values()))))
         out["worker_total_s"] = worker_total
         out["transport_s"] = max(0.0, batch.fanout_s + batch.wait_s - worker_total)
-        if recovery_s > 1e-3:
-            out["recovery_s"] = recovery_s
         out["total_s"] = total_s
         return out
+
+    # ----- failures --------------------------------------------------------------------------
+
+    def _handle_failure(self, reply: Reply, slots: Sequence[int] = ()) -> None:
+        """The one failure policy: what a failed or refused request does to its worker and slots."""
+        if reply.error is not None and not is_unknown_scene(reply.error):
+            raise reply.error
+        if reply.error is not None:  # restarted under the same id: its scenes are gone, the worker is fine
+            reason = f"forgot its scenes ({reply.error.message})"
+        else:
+            reason = reply.failure or "failed"
+            others = [w for w in self._pool.live_workers() if w != reply.worker_id]
+            self._pool.drop(reply.worker_id, reason, replace=bool(others))
+        for slot in self.table.orphan_worker(reply.worker_id):
+            log.warning("run %s: slot %d left worker %s (%s)", self.run_id, slot, reply.worker_id, reason)
+
+    # ----- background work -------------------------------------------------------------------
+
+    def _maintain(self) -> None:
+        """Orphan slots of dead or restarted workers; start loads for orphans; rebalance; wait out outages."""
+        live = self._pool.live_workers()
+        gens = {w: self._pool.generation(w) for w in live}
+        for s in self.table.slots:
+            if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
+                why = "liveliness token gone" if s.worker not in gens else "restarted"
+                for slot in self.table.orphan_worker(s.worker):
+                    log.warning("run %s: slot %d lost its worker (%s)", self.run_id, slot, why)
+        if not live:
+            live = self._wait_out_outage()
+            gens = {w: self._pool.generation(w) for w in live}
+        plan = self.table.plan_placement(live, gens)
+        if not plan and not self._background and not self.table.orphans():
+            plan = self.table.plan_rebalance(live, gens)
+        self._send_loads(plan)
+
+    def _wait_out_outage(self) -> list[str]:
+        """No worker is reachable: wait for one (up to ``outage_limit_s``), or raise NoWorkersError."""
+        limit = self.pool_config.outage_limit_s
+        log.warning("run %s: no scene worker reachable; waiting up to %g s", self.run_id, limit)
+        live = self._pool.wait_for(1, limit, remote_may_join=True)
+        if not live:
+            where = f"router/endpoints {list(self.pool_config.connect)}" if self.pool_config.connect else "local workers"
+            raise NoWorkersError(
+                f"run {self.run_id!r}: no scene worker reachable for outage_limit_s={limit:g} s ({where}); "
+                "the router or the network is unreachable, or every worker is gone"
+                + (f"; {self._pool.startup_report()}" if self._pool.startup_report() else ""))
+        return live
+
+    def _send_loads(self, plan: list[tuple[int, Move]]) -> None:
+        if not plan:
+            return
+        requests = [(move.worker, LoadScene(move.key, move.source, self.cameras, self.drone_radius,
+                                            self.multi_agent).to_message()) for _, move in plan]
+        for (slot, move), pending in zip(plan, self._pool.send(requests, self.pool_config.startup_timeout_s)):
+            self._background.append(_Background("load", pending, slot, move))
+        log.info("run %s: loading in the background: %s", self.run_id,
+                 [(slot, move.worker, move.reason) for slot, move in plan])
+
+    def _apply_background(self) -> None:
+        """Take in every finished background request; switch slots whose scene (and spawns) are ready."""
+        due = [(w, k) for c, w, k in self._unloads if c <= self._collects]
+        self._unloads = [u for u in self._unloads if u[0] > self._collects]
+        if due:
+            for pending in self._pool.send([(w, UnloadScene(k).to_message()) for w, k in due], self.pool_config.step_timeout_s):
+                self._background.append(_Background("unload", pending))
+        still = []
+        for job in self._background:
+            if not job.pending.done():
+                still.append(job)
+                continue
+            reply = self._pool.result(job.pending)
+            if job.kind == "load":
+                self._finish_load(job, reply, still)
+            elif job.kind == "spawn":
+                self._finish_spawn(job, reply, still)
+        self._background = still
+
+    def _finish_load(self, job: _Background, reply: Reply, still: list[_Background]) -> None:
+        move = job.move
+        assert move is not None
+        if reply.message is None:
+            self.table.fail_move(job.slot, move)
+            if reply.error is not None and not is_unknown_scene(reply.error):
+                raise RemoteError(move.worker, reply.error.error_type,
+                                  f"loading {move.source!r} into slot {job.slot}: {reply.error.message}")
+            self._handle_failure(reply)
+            return
+        if self.table.slots[job.slot].move is not move:
+            return  # cancelled (its worker failed meanwhile)
+        move_bounds = reply.message["bounds"]
+        move_meta = reply.message.get("metadata", {})
+        specs = {k[2] for k in self._spawn_pools if k[0] == job.slot}
+        if move.reason == "swap" and specs:
+            # The new scene's spawn pools come first, so resets never wait for them.
+            self._pending_switch[job.slot] = (move, move_bounds, move_meta, set(specs))
+            for spec in specs:
+                still.append(self._spawn_job(job.slot, move.worker, move.key, move.source, spec))
+            return
+        self._switch(job.slot, move, move_bounds, move_meta)
+
+    def _switch(self, slot: int, move: Move, bounds: Any, metadata: dict[str, Any]) -> None:
+        old_worker, old_key = self.table.finish_move(slot, move, bounds, metadata)
+        if old_worker is not None and old_key != move.key:
+            self._unloads.append((self._collects + UNLOAD_DELAY_COLLECTS, old_worker, old_key))
+        if move.reason == "swap":
+            self._switched[self.table.agents_of(slot)] = True
+            log.info("run %s: slot %d now holds %s", self.run_id, slot, move.source)
 
     # ----- spawn sampling --------------------------------------------------------------------
 
     def sample_spawn(self, agents: np.ndarray, distribution: str, a: Sequence[float], b: Sequence[float],
                      clearance: float) -> np.ndarray:
-        """Free positions for ``agents``, ``(k, 3)`` float64, drawn from per-scene pools.
+        """Free positions for ``agents``, ``(k, 3)`` float64, drawn locally from per-scene pools.
 
         Each (scene, distribution) pool of ``max(256, 8 * agents_per_scene)`` positions is sampled
-        once by the scene's worker; draws from it use this aggregator's seeded generator, so the
-        same seed gives the same positions.
-
-        Args:
-            agents: agent indices.
-            distribution: ``"uniform"`` (``a`` low corner, ``b`` high corner) or ``"normal"``
-                (``a`` mean, ``b`` std).
-            a: 3 numbers.
-            b: 3 numbers.
-            clearance: minimum distance to any obstacle (m).
+        by the scene's worker; draws use this aggregator's seeded generator. A pool is refreshed
+        with fresh samples in the background once half of it has been drawn, and replaced when
+        all of it has (at a draw count, not a time, so the same seed gives the same positions).
+        Only the very first draw from a scene waits for its pool.
         """
         self._require_started()
         agents = self._agent_index(agents)
         spec = self._spawn_spec(distribution, a, b, clearance)
         slots = sorted({int(s) for s in self.agent_scene[agents]})
-        self._maintain()
-        for _ in range(2):
-            missing = [s for s in slots if (s, self._slots[s].source, spec) not in self._spawn_pools]
-            if not missing:
-                break
-            self._fetch_spawn_pools(missing, spec)
-            self._place_orphans()
-        missing = [s for s in slots if (s, self._slots[s].source, spec) not in self._spawn_pools]
+        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawn_pools]
         if missing:
-            raise NoWorkersError(f"run {self.run_id!r}: no worker could sample spawn positions for slots {missing}")
+            self._fetch_spawn_pools_now(missing, spec)
         draws = self._rng.integers(0, 2**31 - 1, size=len(agents))
         out = np.empty((len(agents), 3), dtype=np.float64)
-        for i, (agent, draw) in enumerate(zip(agents, draws)):
-            slot = int(self.agent_scene[agent])
-            pool = self._spawn_pools[(slot, self._slots[slot].source, spec)]
-            out[i] = pool[draw % len(pool)]
+        slot_of = self.agent_scene[agents]
+        for slot in slots:
+            key = self._pool_key(slot, spec)
+            mine = np.flatnonzero(slot_of == slot)
+            pool = self._spawn_pools[key]
+            out[mine] = pool[draws[mine] % len(pool)]
+            self._count_draws(slot, key, len(mine))
         return out
+
+    def _pool_key(self, slot: int, spec: tuple) -> tuple:
+        return (slot, self.table.slots[slot].source, spec)
+
+    def _count_draws(self, slot: int, key: tuple, n: int) -> None:
+        drawn = self._spawn_draws.get(key, 0) + n
+        self._spawn_draws[key] = drawn
+        size = len(self._spawn_pools[key])
+        s = self.table.slots[slot]
+        if drawn >= size // 2 and key not in self._spawn_refresh and s.worker is not None:
+            self._spawn_refresh[key] = 1
+            self._background.append(self._spawn_job(slot, s.worker, s.key, s.source, key[2], refresh=True))
+        if drawn >= size and any(j.kind == "spawn" and j.spec == key for j in self._background):
+            self._apply_background_wait(key)
+
+    def _apply_background_wait(self, key: tuple) -> None:
+        """A pool is used up: wait (bounded) for its refresh so the draws stay deterministic."""
+        jobs = [j for j in self._background if j.kind == "spawn" and j.spec == key]
+        self._pool.wait_any([[j.pending for j in jobs]], self.pool_config.step_timeout_s)
+        self._apply_background()
+
+    def _spawn_job(self, slot: int, worker: str, scene_key: str, source: str, spec: tuple,
+                   refresh: bool = False) -> _Background:
+        distribution, a, b, clearance = spec
+        n = max(SPAWN_POOL_MIN, 8 * self.agents_per_scene)
+        generation = self._spawn_refresh.get((slot, source, spec), 0) + int(refresh)
+        seed = zlib.crc32(repr((self.seed, slot, source, spec, generation)).encode())
+        message = SampleSpawn(scene_key, n, clearance, distribution, a, b, seed).to_message()
+        (pending,) = self._pool.send([(worker, message)], self.pool_config.step_timeout_s)
+        return _Background("spawn", pending, slot, spec=(slot, source, spec))
+
+    def _finish_spawn(self, job: _Background, reply: Reply, still: list[_Background]) -> None:
+        slot, source, spec = job.spec  # type: ignore[misc]
+        switch = self._pending_switch.get(slot)
+        if reply.message is None:
+            if switch is not None:
+                self.table.fail_move(slot, switch[0])
+                del self._pending_switch[slot]
+            if reply.error is not None and not is_unknown_scene(reply.error):
+                raise reply.error
+            self._handle_failure(reply)
+            return
+        positions = np.asarray(reply.message["positions"], dtype=np.float64).reshape(-1, 3)
+        if len(positions) == 0:
+            raise RemoteError(reply.worker_id, "SceneError", f"no free spawn position in {source!r} for {spec}")
+        self._spawn_pools[job.spec] = positions
+        self._spawn_draws[job.spec] = 0
+        if switch is not None and switch[0].source == source:
+            switch[3].discard(spec)
+            if not switch[3]:
+                del self._pending_switch[slot]
+                self._switch(slot, switch[0], switch[1], switch[2])
+
+    def _fetch_spawn_pools_now(self, slots: list[int], spec: tuple) -> None:
+        """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""
+        for _ in range(3):
+            jobs = [self._spawn_job(s, self.table.slots[s].worker, self.table.slots[s].key, self.table.slots[s].source, spec)
+                    for s in slots if self.table.slots[s].worker is not None]
+            self._background.extend(jobs)
+            self._pool.gather([j.pending for j in jobs])
+            self._apply_background()
+            slots = [s for s in slots if self._pool_key(s, spec) not in self._spawn_pools]
+            if not slots:
+                return
+            self._place_all_now()
+        raise NoWorkersError(f"run {self.run_id!r}: no worker could sample spawn positions for slots {slots}")
 
     def reseed(self, seed: int) -> None:
         """Restart the spawn draws from ``seed`` (the per-scene pools stay as they are)."""
@@ -432,59 +609,30 @@ class Aggregator:
             raise ConfigError("invalid spawn request: " + "; ".join(problems))
         return (distribution, tuple(va.tolist()), tuple(vb.tolist()), float(clearance))
 
-    def _fetch_spawn_pools(self, slots: list[int], spec: tuple) -> None:
-        distribution, a, b, clearance = spec
-        n = max(SPAWN_POOL_MIN, 8 * self.agents_per_scene)
-        requests = []
-        for s in slots:
-            slot = self._slots[s]
-            seed = zlib.crc32(repr((self.seed, s, slot.source, spec)).encode())
-            requests.append((slot.worker, SampleSpawn(slot.key, n, clearance, distribution, a, b, seed).to_message()))
-        replies = self._pool.call(requests, self.pool_config.step_timeout_s)
-        for s, reply in zip(slots, replies):
-            if reply.failure is not None:
-                self._orphan_worker_slots(reply.worker_id, drop=True, reason=reply.failure)
-            elif reply.error is not None:
-                raise reply.error
-            else:
-                positions = np.array(reply.message["positions"], dtype=np.float64).reshape(-1, 3)
-                if len(positions) == 0:
-                    raise RemoteError(reply.worker_id, "SceneError", f"no free spawn position in slot {s} for {spec}")
-                self._spawn_pools[(s, self._slots[s].source, spec)] = positions
-
     # ----- scene swapping --------------------------------------------------------------------
 
-    def note_resets(self, agents: np.ndarray) -> np.ndarray:
-        """Count episode resets per slot; swap scenes that reached ``swap_every_resets``.
+    def note_resets(self, agents: np.ndarray) -> None:
+        """Count episode resets per slot; start loading the next scene of slots due for a swap.
 
-        Returns:
-            ``(N,)`` bool mask of the agents whose scene was swapped (the env truncates them).
+        The swap happens in the background: :meth:`take_switched` reports the agents whose scene
+        changed once the new scene (and its spawn pools) are ready.
         """
         self._require_started()
         agents = self._agent_index(agents)
-        mask = np.zeros(self.num_agents, dtype=bool)
         every = self.scene_config.swap_every_resets
         if every == 0 or len(agents) == 0:
-            return mask
-        counts = np.bincount(self.agent_scene[agents], minlength=len(self._slots))
-        due = []
-        for slot in self._slots:
+            return
+        counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
+        gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
+        plan = []
+        for slot in self.table.slots:
             slot.resets += int(counts[slot.index])
-            if slot.resets >= every:
+            if slot.resets >= every and slot.move is None:
                 slot.resets = 0
-                slot.source = self.dataset.next_source()
-                due.append(slot.index)
-        if not due:
-            return mask
-        self._spawn_pools = {k: v for k, v in self._spawn_pools.items() if k[0] not in due}
-        self._maintain()
-        live = [s for s in due if self._slots[s].worker is not None]
-        self._load([(s, self._slots[s].worker) for s in live])
-        self._place_orphans()
-        for s in due:
-            mask[self.agent_scene == s] = True
-        log.info("run %s: swapped scenes of slots %s", self.run_id, due)
-        return mask
+                move = self.table.plan_swap(slot.index, self.dataset.next_source(), gens)
+                if move is not None:
+                    plan.append((slot.index, move))
+        self._send_loads(plan)
 
     # ----- health ----------------------------------------------------------------------------
 
@@ -498,112 +646,25 @@ class Aggregator:
             entry = {k: v for k, v in (reply.message or {}).items() if k not in ("version", "type")}
             entry["worker_id"] = reply.worker_id
             entry["local"] = self._pool.is_local(reply.worker_id)
-            entry["slots"] = [s.index for s in self._slots if s.worker == reply.worker_id]
+            entry["slots"] = [s.index for s in self.table.slots if s.worker == reply.worker_id]
             if reply.failure is not None or reply.error is not None:
                 entry["error"] = reply.failure or str(reply.error)
             out.append(entry)
         return out
 
-    # ----- placement and recovery ------------------------------------------------------------
+    # ----- placement at start ----------------------------------------------------------------
 
-    def _maintain(self) -> None:
-        """Orphan slots whose worker died or restarted; place orphans; rebalance onto idle workers."""
-        live = set(self._pool.live_workers())
-        for slot in self._slots:
-            if slot.worker is None:
-                continue
-            if slot.worker not in live:
-                self._orphan_worker_slots(slot.worker, drop=True, reason="liveliness token gone")
-            elif self._pool.generation(slot.worker) != slot.generation:
-                self._orphan_worker_slots(slot.worker, drop=False, reason="restarted")
-        if any(s.worker is None for s in self._slots):
-            self._place_orphans()
-        self._rebalance()
-
-    def _orphan_worker_slots(self, worker_id: str, drop: bool, reason: str) -> None:
-        """Orphan every slot of ``worker_id`` (dropping the worker if it failed); mark its agents lost."""
-        if drop:
-            self._pool.drop(worker_id, reason)
-        for slot in self._slots:
-            if slot.worker == worker_id:
-                slot.worker = None
-                self._pending_lost[self.agent_scene == slot.index] = True
-                log.warning("run %s: slot %d left worker %s (%s)", self.run_id, slot.index, worker_id, reason)
-
-    def _loads(self) -> dict[str, int]:
-        loads = {w: 0 for w in self._pool.live_workers()}
-        for slot in self._slots:
-            if slot.worker in loads:
-                loads[slot.worker] += self.agents_per_scene
-        return loads
-
-    def _place_orphans(self) -> None:
-        """Load every orphan slot on the least-loaded live workers, until none is left."""
-        for _ in range(len(self._slots) + 64):
-            orphans = [s for s in self._slots if s.worker is None]
-            if not orphans:
+    def _place_all_now(self) -> None:
+        """Load every orphan and wait for the loads (start-up, and the rare blocking fallback)."""
+        for _ in range(len(self.table) + 64):
+            if not self.table.orphans():
                 return
             live = self._pool.require_live()
-            loads = self._loads()
-            plan = []
-            for slot in orphans:
-                target = min(live, key=lambda w: (loads[w], w))
-                loads[target] += self.agents_per_scene
-                plan.append((slot.index, target))
-            self._load(plan)
+            self._send_loads(self.table.plan_placement(live, {w: self._pool.generation(w) for w in live}))
+            jobs = [j for j in self._background if j.kind == "load"]
+            self._pool.gather([j.pending for j in jobs])
+            self._apply_background()
         raise NoWorkersError(f"run {self.run_id!r}: could not place scenes after repeated worker failures")
-
-    def _load(self, plan: list[tuple[int, str]]) -> None:
-        """LoadScene for each (slot, worker), all in flight; failing workers are dropped."""
-        if not plan:
-            return
-        requests = []
-        for s, wid in plan:
-            slot = self._slots[s]
-            requests.append((wid, LoadScene(slot.key, slot.source, self.cameras, self.drone_radius,
-                                            self.multi_agent).to_message()))
-        replies = self._pool.call(requests, self.pool_config.startup_timeout_s)
-        failed = []
-        for (s, wid), reply in zip(plan, replies):
-            slot = self._slots[s]
-            if reply.failure is not None:
-                slot.worker = None
-                failed.append((wid, reply.failure))
-            elif reply.error is not None:
-                raise RemoteError(wid, reply.error.error_type, f"loading {slot.source!r} into slot {s}: {reply.error.message}")
-            else:
-                slot.worker = wid
-                slot.generation = self._pool.generation(wid)
-                slot.bounds = np.asarray(reply.message["bounds"], dtype=np.float64).reshape(2, 3)
-                slot.metadata = dict(reply.message.get("metadata", {}))
-        for wid, reason in failed:
-            self._orphan_worker_slots(wid, drop=True, reason=reason)
-
-    def _rebalance(self) -> None:
-        """Move scenes from the busiest to idle workers while loads differ by more than one scene.
-
-        The scene is loaded on the new worker before the old one forgets it, so nothing is lost.
-        """
-        loads = self._loads()
-        moves: list[tuple[int, str, str]] = []
-        while len(loads) > 1:
-            busiest = max(loads, key=lambda w: (loads[w], w))
-            idlest = min(loads, key=lambda w: (loads[w], w))
-            if loads[busiest] - loads[idlest] <= self.agents_per_scene:
-                break
-            slot = next(s for s in reversed(self._slots)
-                        if s.worker == busiest and s.index not in {m[0] for m in moves})
-            moves.append((slot.index, busiest, idlest))
-            loads[busiest] -= self.agents_per_scene
-            loads[idlest] += self.agents_per_scene
-        if not moves:
-            return
-        log.info("run %s: rebalancing slots %s", self.run_id, [(m[0], m[1], m[2]) for m in moves])
-        old = {s: src for s, src, _ in moves}
-        self._load([(s, dst) for s, _, dst in moves])
-        unload = [(old[s], UnloadScene(self._slots[s].key).to_message()) for s, _, _ in moves
-                  if self._slots[s].worker not in (None, old[s])]
-        self._pool.call(unload, self.pool_config.step_timeout_s)  # best effort: a failure shows next call
 
     # ----- input checks ----------------------------------------------------------------------
 
@@ -632,13 +693,15 @@ class Aggregator:
         if poses.ndim != 2 or poses.shape[1] != 7 or poses.shape[0] not in (self.num_agents, len(agents)):
             raise ConfigError(f"poses of shape {poses.shape} must be ({self.num_agents}, 7) or ({len(agents)}, 7): "
                               "rows [x, y, z, qw, qx, qy, qz]")
-        rows = poses[agents] if poses.shape[0] == self.num_agents else poses
-        rows = np.array(rows, dtype=np.float32)
-        if not np.all(np.isfinite(rows)):
-            bad = np.flatnonzero(~np.all(np.isfinite(rows), axis=1))
+        rows = poses[agents] if poses.shape[0] == self.num_agents and len(agents) != self.num_agents else poses
+        rows = np.asarray(rows, dtype=np.float32)
+        if not np.isfinite(rows).all():
+            bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
             raise ConfigError(f"poses of agents {agents[bad][:10].tolist()} are not finite")
-        norms = np.linalg.norm(rows[:, 3:], axis=1, keepdims=True)
-        if np.any(norms < 1e-6):
+        norms = np.sqrt(np.einsum("ij,ij->i", rows[:, 3:], rows[:, 3:]))
+        if len(norms) and norms.min() < 1e-6:
             raise ConfigError("poses hold a zero quaternion; quaternions are wxyz and must be unit")
-        rows[:, 3:] /= norms
+        if len(norms) and np.abs(norms - 1).max() > 1e-4:
+            rows = rows.copy()
+            rows[:, 3:] /= norms[:, None]
         return rows

@@ -59,6 +59,8 @@ class PoolConfig:
         respawn: replace a local worker that dies.
         min_workers: live workers needed before ``start()`` returns.
         lease_ms: Zenoh link lease of local workers: a hung worker is declared dead after this.
+        outage_limit_s: how long a run waits when no worker at all is reachable (the router or the
+            network is down) before it fails with NoWorkersError.
     """
 
     run_id: str | None = None
@@ -73,6 +75,7 @@ class PoolConfig:
     respawn: bool = True
     min_workers: int = 1
     lease_ms: int = 2000
+    outage_limit_s: float = 120.0
 
     def __post_init__(self) -> None:
         self.connect = tuple(self.connect)
@@ -97,7 +100,7 @@ class PoolConfig:
             out.append("num_local_workers=0 needs connect or listen endpoints where remote workers can join")
         if self.backend not in BACKENDS:
             out.append(f"backend={self.backend!r} must be one of {BACKENDS}")
-        for name in ("step_timeout_s", "startup_timeout_s"):
+        for name in ("step_timeout_s", "startup_timeout_s", "outage_limit_s"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not 0 < value <= 3600:
                 out.append(f"{name}={value!r} must be a number of seconds in (0, 3600]")

@@ -8,10 +8,13 @@ Invariants (zenoh-facts.md):
   generation: a scene loaded at an older generation is gone from the worker and must be reloaded.
   Events queue on a channel that the calling thread drains: no callback thread, so no locks, and
   no hang at interpreter exit if a user forgets ``close()``.
-- Every request is a ``get`` with a timeout and ``ConsolidationMode.NONE``; all gets of a batch are
-  issued before any is gathered, so a batch costs the slowest worker, not the sum. Zero replies
-  (worker gone, or it dropped the query) and a ``Timeout`` reply both mean the worker is failing;
-  an error reply in our codec is the worker reporting a problem with the request.
+- Every request is a ``get`` with a timeout and ``ConsolidationMode.NONE``, answered through a
+  callback that keeps the first reply's bytes and flags the request done (:class:`Pending`). A
+  request never blocks the caller: :meth:`WorkerPool.send` returns at once, :meth:`WorkerPool.gather`
+  waits for a batch (which costs the slowest worker, not the sum), and :meth:`WorkerPool.wait_any`
+  waits for whichever of several batches is ready. Zero replies (worker gone, or it dropped the
+  query) and a ``Timeout`` reply both mean the worker is failing; an error reply in our codec is
+  the worker reporting a problem with the request.
 - Local workers are spawned with subprocess (fork + exec, safe after the session opened) and are
   stopped on close, SIGTERM first, then SIGKILL after a grace period; the session is closed too.
 """
@@ -23,6 +26,7 @@ import os
 import shutil
 import socket
 import tempfile
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -66,6 +70,34 @@ class Reply:
     failure: str | None = None
 
 
+class Pending:
+    """One request in flight to one worker; Zenoh's callback thread fills it in.
+
+    Only the first reply is kept (a worker answers once). ``done()`` turns true when the query is
+    finished: replied, dropped by the worker, or timed out; the pool's condition is notified then.
+    """
+
+    def __init__(self, worker_id: str, timeout_s: float, condition: threading.Condition) -> None:
+        self.worker_id = worker_id
+        self.timeout_s = timeout_s
+        self.sent_at = time.perf_counter()
+        self.raw: tuple[bool, bytes] | None = None
+        self._done = threading.Event()
+        self._condition = condition
+
+    def on_reply(self, reply: Any) -> None:
+        if self.raw is None:
+            self.raw = (True, reply.ok.payload.to_bytes()) if reply.ok is not None else (False, reply.err.payload.to_bytes())
+
+    def on_done(self) -> None:
+        self._done.set()
+        with self._condition:
+            self._condition.notify_all()
+
+    def done(self) -> bool:
+        return self._done.is_set()
+
+
 @dataclass
 class BatchTimings:
     """Where the time of one fan-out batch went, in seconds."""
@@ -92,6 +124,7 @@ class WorkerPool:
         self._subscriber = None
         self._log_dir: str | None = None
         self._launch: WorkerLaunchSpec | None = None
+        self._replies = threading.Condition()
 
     # ----- lifecycle -------------------------------------------------------------------------
 
@@ -209,18 +242,21 @@ class WorkerPool:
                 lines.append(f"{wid} exited with {w.process.returncode}: {w.log_tail(800)!r}")
         return "; ".join(lines)
 
-    def drop(self, worker_id: str, reason: str) -> str | None:
-        """Stop using a failing worker; kill it if local and start a replacement when allowed.
+    def drop(self, worker_id: str, reason: str, replace: bool = True) -> str | None:
+        """Stop using a failing worker until its token reappears.
 
-        Returns the replacement's id (not yet live), or ``None``.
+        A local one is killed and replaced (when ``respawn`` is on) only with ``replace``: the
+        caller passes ``False`` when no other worker is reachable either, since then the network
+        or the router is down and the worker itself is probably fine. Returns the replacement's id
+        (not yet live), or ``None``.
         """
         log.warning("run %s: dropping worker %s: %s", self.run_id, worker_id, reason)
         self._poll_liveliness()
         if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
             self._banned.add(worker_id)
-        worker = self._local.pop(worker_id, None)
-        if worker is None:
+        if not replace or worker_id not in self._local:
             return None
+        worker = self._local.pop(worker_id)
         worker.kill()
         if self.config.respawn:
             return self.spawn_local()
@@ -250,38 +286,61 @@ class WorkerPool:
 
     # ----- requests --------------------------------------------------------------------------
 
-    def call(self, requests: Sequence[tuple[str, dict[str, Any]]], timeout_s: float,
-             timings: BatchTimings | None = None) -> list[Reply]:
-        """Send every request at once, then gather one reply each (same order as ``requests``).
+    def send(self, requests: Sequence[tuple[str, dict[str, Any]]], timeout_s: float) -> list[Pending]:
+        """Put every request on the wire and return at once, one :class:`Pending` each."""
+        assert self._session is not None, "pool is not open"
+        out = []
+        for wid, message in requests:
+            pending = Pending(wid, timeout_s, self._replies)
+            self._session.get(keys.worker_rpc(self.run_id, wid), payload=encode(message), timeout=timeout_s,
+                              consolidation=zenoh.ConsolidationMode.NONE,
+                              handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done))
+            out.append(pending)
+        return out
+
+    def wait_any(self, batches: Sequence[Sequence[Pending]], timeout_s: float) -> int | None:
+        """Index of the first batch whose requests are all done, waiting up to ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        with self._replies:
+            while True:
+                for i, batch in enumerate(batches):
+                    if all(p.done() for p in batch):
+                        return i
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._replies.wait(min(left, 0.5))
+
+    def gather(self, pending: Sequence[Pending], timings: BatchTimings | None = None) -> list[Reply]:
+        """Wait until every request of ``pending`` is done; one :class:`Reply` each, in order.
 
         Never raises for a failing worker (see :class:`Reply`); raises ProtocolError for a reply
-        that is not a valid message (a bug on one side).
+        that is not a valid message (a bug on one side). A request's own timeout bounds the wait
+        (plus a margin for the callback that reports it).
         """
-        assert self._session is not None, "pool is not open"
-        timings = timings if timings is not None else BatchTimings()
-        t0 = time.perf_counter()
-        handlers = []
-        for wid, message in requests:
-            handlers.append(self._session.get(
-                keys.worker_rpc(self.run_id, wid), payload=encode(message), timeout=timeout_s,
-                consolidation=zenoh.ConsolidationMode.NONE))
         t1 = time.perf_counter()
-        raw: list[tuple[bool, bytes] | None] = []
-        for handler in handlers:
-            first = None
-            for reply in handler:  # ends when the query is done: replied, dropped or timed out
-                if first is None:
-                    first = (True, reply.ok.payload.to_bytes()) if reply.ok is not None \
-                        else (False, reply.err.payload.to_bytes())
-            raw.append(first)
+        longest = max((p.timeout_s for p in pending), default=0.0)
+        self.wait_any([pending], longest + 5.0)
         t2 = time.perf_counter()
-        out = [self._interpret(wid, r, timeout_s) for (wid, _), r in zip(requests, raw)]
-        t3 = time.perf_counter()
-        timings.fanout_s += t1 - t0
-        timings.wait_s += t2 - t1
-        timings.decode_s += t3 - t2
-        timings.bytes_in += sum(len(r[1]) for r in raw if r is not None)
+        out = [self.result(p) for p in pending]
+        if timings is not None:
+            timings.wait_s += t2 - t1
+            timings.decode_s += time.perf_counter() - t2
+            timings.bytes_in += sum(len(p.raw[1]) for p in pending if p.raw is not None)
         return out
+
+    def result(self, pending: Pending) -> Reply:
+        """The outcome of a finished request (a request not done yet counts as timed out)."""
+        return self._interpret(pending.worker_id, pending.raw if pending.done() else None, pending.timeout_s)
+
+    def call(self, requests: Sequence[tuple[str, dict[str, Any]]], timeout_s: float,
+             timings: BatchTimings | None = None) -> list[Reply]:
+        """Send every request at once, then gather one reply each (same order as ``requests``)."""
+        t0 = time.perf_counter()
+        pending = self.send(requests, timeout_s)
+        if timings is not None:
+            timings.fanout_s += time.perf_counter() - t0
+        return self.gather(pending, timings)
 
     def _interpret(self, wid: str, raw: tuple[bool, bytes] | None, timeout_s: float) -> Reply:
         if raw is None:

@@ -1,0 +1,93 @@
+"""The observation assembler: worker replies scattered into buffers allocated before they arrive.
+
+A step request to one worker carries its agents' poses as one array; its reply carries every array
+(images per camera, collision, inside, nearest, distance) with the rows in request order. The
+assembler knows, per request, which observation row each reply row belongs to, so each reply array
+costs one indexed copy (``out[rows] = reply``) from a read-only view on the received payload
+(:func:`visfly_dist.protocol.codec.decode`): renderer output -> payload (worker) -> buffer (here)
+are the only two copies of an image before it becomes a torch tensor (``torch.from_numpy``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from visfly_dist.errors import ProtocolError
+from visfly_dist.protocol.cameras import CameraSpec
+
+QUERY_FIELDS = ("collision", "inside", "nearest", "distance")
+
+
+@dataclass
+class Observation:
+    """What the workers saw for ``k`` agents, in the order they were asked for.
+
+    Attributes:
+        images: camera name -> ``(k, C, H, W)`` array of the camera's dtype.
+        collision: ``(k,)`` bool, the drone's sphere touches an obstacle.
+        inside: ``(k,)`` bool, the drone is inside a closed obstacle.
+        nearest: ``(k, 3)`` float32 nearest obstacle point (world, m).
+        distance: ``(k,)`` float32 distance to it (m), capped at the search radius.
+        lost: ``(k,)`` bool, no fresh data for the agent this time (its worker failed or its scene
+            is being placed on another worker): the row holds its last good data (zeros and
+            ``far`` depth if none) and the env truncates the agent.
+        timings: seconds per stage (see :meth:`Aggregator.collect`).
+    """
+
+    images: dict[str, np.ndarray]
+    collision: np.ndarray
+    inside: np.ndarray
+    nearest: np.ndarray
+    distance: np.ndarray
+    lost: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def take(self, rows: np.ndarray) -> "Observation":
+        """The rows ``rows`` (a copy), with the same timings."""
+        return Observation({k: v[rows] for k, v in self.images.items()}, self.collision[rows], self.inside[rows],
+                           self.nearest[rows], self.distance[rows], self.lost[rows], dict(self.timings))
+
+
+def blank_observation(cameras: Sequence[CameraSpec], n: int, search_radius: float) -> Observation:
+    """``n`` rows of "nothing seen": far depth, zero images, no obstacle within reach."""
+    images = {c.name: np.full((n, *c.shape), c.far if c.kind == "depth" else 0, dtype=c.dtype) for c in cameras}
+    return Observation(images, np.zeros(n, bool), np.zeros(n, bool), np.zeros((n, 3), np.float32),
+                       np.full(n, search_radius, np.float32), np.ones(n, bool))
+
+
+def empty_observation(cameras: Sequence[CameraSpec], n: int) -> Observation:
+    """Uninitialised buffers for ``n`` rows (every row is written before it is read)."""
+    images = {c.name: np.empty((n, *c.shape), dtype=c.dtype) for c in cameras}
+    return Observation(images, np.empty(n, bool), np.empty(n, bool), np.empty((n, 3), np.float32),
+                       np.empty(n, np.float32), np.ones(n, bool))
+
+
+def scatter_reply(out: Observation, rows: np.ndarray, reply: dict[str, Any], cameras: Sequence[CameraSpec],
+                  worker_id: str) -> None:
+    """Write a ``step_result`` whose rows belong to ``out``'s rows ``rows``; checks every shape first."""
+    n = len(rows)
+    images = reply.get("images") or {}
+    expected = [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in cameras]
+    expected += [("collision", reply.get("collision"), (n,)), ("inside", reply.get("inside"), (n,)),
+                 ("nearest", reply.get("nearest"), (n, 3)), ("distance", reply.get("distance"), (n,))]
+    for name, value, shape in expected:
+        if not isinstance(value, np.ndarray) or value.shape != shape:
+            got = getattr(value, "shape", type(value).__name__)
+            raise ProtocolError(f"worker {worker_id!r} sent {name} of shape {got}; expected {shape}")
+    for cam in cameras:
+        out.images[cam.name][rows] = images[cam.name]
+    for key in QUERY_FIELDS:
+        getattr(out, key)[rows] = reply[key]
+    out.lost[rows] = False
+
+
+def copy_rows(out: Observation, rows: np.ndarray, source: Observation, source_rows: np.ndarray) -> None:
+    """Fill ``out``'s rows ``rows`` from ``source`` (last good data); they stay marked lost."""
+    for name, image in out.images.items():
+        image[rows] = source.images[name][source_rows]
+    for key in QUERY_FIELDS:
+        getattr(out, key)[rows] = getattr(source, key)[source_rows]
+    out.lost[rows] = True

@@ -1,0 +1,160 @@
+"""The slot table: which scene lives on which worker, as pure data and plans (no I/O).
+
+Agents are grouped in slots: agent ``i`` flies in slot ``i // agents_per_scene``. A slot holds one
+scene source, served by one worker under one scene key. Moving a slot (to place an orphan, to
+rebalance, or to swap its scene for the next source of the dataset) is a *move*: the new scene is
+loaded under a fresh key while the old one keeps serving, and the slot switches when the load has
+answered. The table only plans; the aggregator carries the plans out and reports back with
+:meth:`SlotTable.finish_move` / :meth:`SlotTable.fail_move`.
+
+Invariants:
+- a slot is served (``worker`` set) only by a worker the caller said is live; :meth:`orphan_worker`
+  clears every slot of a worker that died or restarted, and cancels moves towards it;
+- at most one move per slot is in flight; a move records the generation of the target worker it
+  was planned for, so a reply from a restarted worker is never taken for a load.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+
+@dataclass
+class Move:
+    """A scene being loaded for a slot in the background."""
+
+    worker: str
+    key: str
+    source: str
+    reason: str  # "place", "rebalance" or "swap"
+    generation: int
+
+
+@dataclass
+class Slot:
+    """One scene slot; ``worker`` is ``None`` while it is an orphan."""
+
+    index: int
+    source: str
+    key: str
+    worker: str | None = None
+    generation: int = 0
+    bounds: np.ndarray = field(default_factory=lambda: np.zeros((2, 3)))
+    metadata: dict[str, Any] = field(default_factory=dict)
+    resets: int = 0
+    version: int = 0
+    move: Move | None = None
+
+
+class SlotTable:
+    """Slots of one run and the plans that keep them served."""
+
+    def __init__(self, sources: Sequence[str], agents_per_scene: int) -> None:
+        self.agents_per_scene = int(agents_per_scene)
+        self.slots = [Slot(i, source, f"s{i}v0") for i, source in enumerate(sources)]
+        self.agent_scene = np.arange(len(self.slots) * self.agents_per_scene, dtype=np.int64) // self.agents_per_scene
+
+    def __len__(self) -> int:
+        return len(self.slots)
+
+    def agents_of(self, slot: int) -> np.ndarray:
+        """Agent indices flying in ``slot``."""
+        start = slot * self.agents_per_scene
+        return np.arange(start, start + self.agents_per_scene, dtype=np.int64)
+
+    def orphans(self) -> list[Slot]:
+        return [s for s in self.slots if s.worker is None]
+
+    def loads(self, live: Iterable[str]) -> dict[str, int]:
+        """Slots served or being loaded per live worker (a move counts on its target)."""
+        loads = {w: 0 for w in live}
+        for s in self.slots:
+            if s.move is not None and s.move.worker in loads:
+                loads[s.move.worker] += 1
+            elif s.worker in loads:
+                loads[s.worker] += 1
+        return loads
+
+    def orphan_worker(self, worker_id: str) -> list[int]:
+        """Forget ``worker_id``: its slots become orphans, moves towards it are cancelled."""
+        lost = []
+        for s in self.slots:
+            if s.worker == worker_id:
+                s.worker = None
+                lost.append(s.index)
+            if s.move is not None and s.move.worker == worker_id:
+                s.move = None
+        return lost
+
+    def plan_placement(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
+        """Moves that put every orphan without a move in flight on the least-loaded live workers."""
+        if not live:
+            return []
+        loads = self.loads(live)
+        plan = []
+        for s in self.slots:
+            if s.worker is None and s.move is None:
+                target = min(live, key=lambda w: (loads[w], w))
+                loads[target] += 1
+                plan.append((s.index, self._move(s, target, s.source, "place", generations)))
+        return plan
+
+    def plan_rebalance(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
+        """Moves from the busiest to the idlest worker while their loads differ by more than one slot."""
+        loads = self.loads(live)
+        plan: list[tuple[int, Move]] = []
+        moving = {s.index for s in self.slots if s.move is not None}
+        while len(loads) > 1:
+            busiest = max(loads, key=lambda w: (loads[w], w))
+            idlest = min(loads, key=lambda w: (loads[w], w))
+            if loads[busiest] - loads[idlest] <= 1:
+                break
+            candidates = [s for s in reversed(self.slots) if s.worker == busiest and s.index not in moving]
+            if not candidates:
+                break
+            slot = candidates[0]
+            moving.add(slot.index)
+            plan.append((slot.index, self._move(slot, idlest, slot.source, "rebalance", generations)))
+            loads[busiest] -= 1
+            loads[idlest] += 1
+        return plan
+
+    def plan_swap(self, slot: int, source: str, generations: dict[str, int]) -> Move | None:
+        """Load ``source`` for ``slot`` on the worker serving it (``None`` while it has none)."""
+        s = self.slots[slot]
+        if s.worker is None:
+            s.source = source  # placed with the new source when a worker takes it
+            return None
+        return self._move(s, s.worker, source, "swap", generations)
+
+    def _move(self, slot: Slot, worker: str, source: str, reason: str, generations: dict[str, int]) -> Move:
+        slot.version += 1
+        slot.move = Move(worker, f"s{slot.index}v{slot.version}", source, reason, generations.get(worker, 0))
+        return slot.move
+
+    def finish_move(self, slot: int, move: Move, bounds: np.ndarray, metadata: dict[str, Any]) -> tuple[str | None, str]:
+        """The load answered: the slot switches. Returns the (worker, key) the old scene can be unloaded from."""
+        s = self.slots[slot]
+        old = (s.worker, s.key)
+        s.worker, s.key, s.source, s.generation = move.worker, move.key, move.source, move.generation
+        s.bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
+        s.metadata = dict(metadata)
+        s.move = None
+        return old
+
+    def fail_move(self, slot: int, move: Move) -> None:
+        """The load failed; the slot keeps what it had (an orphan is placed again later)."""
+        if self.slots[slot].move is move:
+            self.slots[slot].move = None
+
+    def by_worker(self, slots: Iterable[int]) -> dict[str, list[int]]:
+        """Served slots of ``slots`` grouped by worker (orphans left out)."""
+        out: dict[str, list[int]] = {}
+        for i in slots:
+            worker = self.slots[i].worker
+            if worker is not None:
+                out.setdefault(worker, []).append(i)
+        return out
