@@ -29,6 +29,7 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv
 
 from visfly_dist.aggregator import Aggregator
+from visfly_dist.aggregator.assembler import empty_observation
 from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
 from visfly_dist.client.frame import SensorFrame
 from visfly_dist.client.noise import SensorNoise
@@ -136,6 +137,14 @@ class DroneEnvBase(VecEnv):
         self.actions = torch.zeros(n, 4, device=self.device)
         self.state: QuadState = self.quad.initial_state(torch.zeros(n, 3, device=self.device))
         self.frame: SensorFrame | None = None
+        self.frame_timings: dict[str, float] = {}
+        self.step_timings: dict[str, float] = {}
+        # Each agent's next start, drawn ahead so its first view travels with an earlier step.
+        self._next_pos = torch.zeros(n, 3, device=self.device)
+        self._next_pose = np.zeros((n, 7), dtype=np.float32)
+        self._next_pose[:, 3] = 1.0
+        self._prepared = np.zeros(n, dtype=bool)
+        self._prepared_obs = empty_observation(self.aggregator.cameras, n)
         self._pending_actions: torch.Tensor | None = None
         self._t0 = time.time()
 
@@ -217,12 +226,15 @@ class DroneEnvBase(VecEnv):
             return self._step(actions)
 
     def _step(self, actions: torch.Tensor | np.ndarray) -> StepResult:
+        t0 = time.perf_counter()
         actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
         if actions.shape != (self.num_envs, 4):
             raise ConfigError(f"actions of shape {tuple(actions.shape)} must be ({self.num_envs}, 4)")
         self.actions = actions.clamp(-1.0, 1.0)
         self.state = self.quad.step(self.state, self.actions)
-        self.frame = self._observe(None)
+        t1 = time.perf_counter()
+        self.frame = self._observe_and_prepare()
+        t2 = time.perf_counter()
         self.episode_step = self.episode_step + 1
         lost = self.frame.lost
         self.success = self.get_success() & ~lost
@@ -235,28 +247,66 @@ class DroneEnvBase(VecEnv):
         terminated = self.success | self.failure
         truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
         terminated, truncated = self.expand_resets(terminated, truncated)
+        swapped = torch.as_tensor(self.aggregator.take_switched(), device=self.device)
+        if bool(swapped.any()):
+            self.bounds = self._agent_bounds()
+            self._prepared &= ~swapped.cpu().numpy()  # their next start lies in the new scene
+            self._draw_next_starts(swapped.nonzero().squeeze(1))
+        swapped = swapped & ~terminated
+        truncated = truncated | swapped
         info = {"terminal_observation": observation, "success": self.success, "lost": lost,
                 "collision": self.frame.collision, "out_of_bounds": self.out_of_bounds(),
-                "swapped": torch.zeros_like(lost), "episode_return": self.episode_return,
+                "swapped": swapped, "episode_return": self.episode_return,
                 "episode_length": self.episode_step}
         done = terminated | truncated
         if bool(done.any()):
-            swapped = self._note_resets(done) & ~done
-            truncated = truncated | swapped
-            info["swapped"] = swapped
-            observation = self._reset_agents(done | swapped, observation)
+            self.aggregator.note_resets(done.nonzero().squeeze(1).cpu().numpy())
+            observation = self._reset_agents(done, observation)
+        self.step_timings = {**self.frame_timings, "physics_s": t1 - t0, "observe_s": t2 - t1,
+                             "total_s": time.perf_counter() - t0}
         return StepResult(observation, reward, terminated, truncated, info)
 
     def expand_resets(self, terminated: torch.Tensor, truncated: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Hook: end further episodes because of these (teams end together in multi-agent tasks)."""
         return terminated, truncated
 
-    def _observe(self, idx: torch.Tensor | None) -> SensorFrame:
-        poses = self.state.pose().detach().cpu().numpy().astype(np.float64)
-        agents = None if idx is None else idx.cpu().numpy()
-        obs = self.aggregator.observe(poses, agents=agents)
+    def _observe_and_prepare(self) -> SensorFrame:
+        """One round trip: every agent's view, plus the first view of the next episode of the
+        agents whose next start is not rendered yet (kept until they reset)."""
+        spawn_agents = np.flatnonzero(~self._prepared)
+        poses = self.state.pose().detach().cpu().numpy()
+        spawn_poses = self._next_pose[spawn_agents]
+        ticket = self.aggregator.submit(poses, spawn_poses=spawn_poses, spawn_agents=spawn_agents)
+        obs, spawn_obs = self.aggregator.collect(ticket)
+        if len(spawn_agents):
+            ok = ~spawn_obs.lost
+            self._store_prepared(spawn_obs, np.flatnonzero(ok), spawn_agents[ok])
+        self.frame_timings = dict(obs.timings)
+        return self._frame(obs)
+
+    def _frame(self, obs: Any) -> SensorFrame:
         return SensorFrame.from_observation(obs, self.device, self._image_noise, self.generator,
                                             cameras=[c.name for c in self.cameras])
+
+    def _store_prepared(self, obs: Any, rows: np.ndarray, agents: np.ndarray) -> None:
+        store = self._prepared_obs
+        for name, image in store.images.items():
+            image[agents] = obs.images[name][rows]
+        for key in ("collision", "inside", "nearest", "distance", "lost"):
+            getattr(store, key)[agents] = getattr(obs, key)[rows]
+        self._prepared[agents] = True
+
+    def _draw_next_starts(self, idx: torch.Tensor) -> None:
+        """Draw the start of the next episode of agents ``idx`` (its view is rendered with the next step)."""
+        if len(idx) == 0:
+            return
+        pos = self.spawn_positions(idx)
+        fresh = self.quad.initial_state(torch.zeros(self.num_envs, 3, device=self.device))
+        self._next_pos[idx] = pos.detach().to(self._next_pos.dtype)
+        poses = fresh.pose().detach().cpu().numpy()
+        poses[:, :3] = self._next_pos.cpu().numpy()
+        self._next_pose[idx.cpu().numpy()] = poses[idx.cpu().numpy()]
+        self._prepared[idx.cpu().numpy()] = False
 
     def _observation(self) -> dict[str, torch.Tensor]:
         obs = self.get_observation()
@@ -264,26 +314,23 @@ class DroneEnvBase(VecEnv):
             obs = {**obs, "state": self._state_noise(obs["state"], self.generator)}
         return obs
 
-    def _note_resets(self, done: torch.Tensor) -> torch.Tensor:
-        """Tell the aggregator about finished episodes; the mask of agents whose scene was swapped."""
-        swapped = np.asarray(self.aggregator.note_resets(done.nonzero().squeeze(1).cpu().numpy()), dtype=bool)
-        swapped_t = torch.as_tensor(swapped, device=self.device)
-        if swapped.any():
-            self.bounds = self._agent_bounds()
-        return swapped_t
-
     def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
-        """Reset the agents in ``mask``; return ``observation`` with their rows replaced by fresh ones."""
+        """Reset the agents in ``mask`` to their drawn next start; return ``observation`` with their
+        rows replaced by the first view of their new episode (rendered ahead, or now if it is not)."""
         idx = mask.nonzero().squeeze(1)
-        pos = self.state.pos.detach().clone()
-        pos[idx] = self.spawn_positions(idx)
-        fresh = self.quad.initial_state(pos)
+        idx_np = idx.cpu().numpy()
+        fresh = self.quad.initial_state(self._next_pos)
         self.state = QuadState.where(mask, fresh, self.state)
         self.episode_step = torch.where(mask, 0, self.episode_step)
         self.episode_return = torch.where(mask, 0.0, self.episode_return)
         self.reset_agents_hook(idx)
-        rows = self._observe(idx)
+        missing = idx_np[~self._prepared[idx_np]]
+        if len(missing):  # first reset, a swapped scene, or a failed worker: render now (a second round trip)
+            obs = self.aggregator.observe(self._next_pose[missing], agents=missing)
+            self._store_prepared(obs, np.arange(len(missing)), missing)
+        rows = self._frame(self._prepared_obs.take(idx_np))
         self.frame = rows if observation is None else self.frame.scatter(idx, rows)
+        self._draw_next_starts(idx)
         fresh_obs = self._observation()
         if observation is None:
             return fresh_obs
@@ -304,6 +351,8 @@ class DroneEnvBase(VecEnv):
         self._reset_options()
         with torch.set_grad_enabled(self.config.requires_grad):
             self.state = self.state.detach()
+            everyone = torch.arange(self.num_envs, device=self.device)
+            self._draw_next_starts(everyone)
             obs = self._reset_agents(torch.ones(self.num_envs, dtype=torch.bool, device=self.device), None)
         self.reset_infos = [{} for _ in range(self.num_envs)]
         return self.to_numpy(obs)
