@@ -74,7 +74,7 @@ def test_scene_swap_truncates_the_agents_of_the_swapped_scene():
         env.force_success[0] = True
         _, _, done, infos = env.step(hover(env))
         env.force_success[:] = False
-        assert done.tolist() == [True, True, False, False]
+        assert done.tolist() == [True, False, False, False]
         assert infos[0]["is_success"] is True  # agent 0 succeeded; the next scene of slot 0 loads meanwhile
         for _ in range(400):  # steps go on in the old scene until the new one is ready
             obs, _, done, infos = env.step(hover(env))
