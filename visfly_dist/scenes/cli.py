@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.set_defaults(func=generate)
 
     preview = sub.add_parser("preview", help="draw RGB/depth/segmentation views and a top-down map to a PNG")
-    preview.add_argument("scene", help="scene path (directory, scene.json, mesh, *.scene_instance.json) or gen: spec")
+    preview.add_argument("scene", help="scene path (directory, scene.json, mesh[?up=y|z], *.scene_instance.json) or gen: spec")
     preview.add_argument("--out", required=True, type=Path, help="PNG file to write")
     preview.add_argument("--backend", choices=("raycast", "egl"), default="raycast", help="renderer (default raycast)")
     preview.set_defaults(func=preview_command)
@@ -53,10 +53,14 @@ def generate(args: argparse.Namespace) -> int:
 
 def preview_command(args: argparse.Namespace) -> int:
     from visfly_dist.scene_worker.preview import preview_scene
-    from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source
+    from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source, split_path_source
     from visfly_dist.scenes.storage import load_scene
 
-    scene = resolve_source(args.scene, roots=[]) if args.scene.startswith(GEN_PREFIX) else load_scene(args.scene)
+    if args.scene.startswith(GEN_PREFIX):
+        scene = resolve_source(args.scene, roots=[])
+    else:
+        path, options = split_path_source(args.scene)
+        scene = load_scene(path, up_axis=options.get("up"))
     out = preview_scene(scene, args.out, backend=args.backend)
     print(f"wrote preview of {scene.name} to {out}")
     return 0
