@@ -10,6 +10,7 @@ Heavy imports (trimesh, renderers, matplotlib) happen inside the commands, so ``
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from visfly_dist.errors import SceneError
@@ -52,6 +53,19 @@ def generate(args: argparse.Namespace) -> int:
 
 
 def preview_command(args: argparse.Namespace) -> int:
+    """Draw the preview sheet; every failure is reported as one line on stderr with exit code 2."""
+    from visfly_dist.errors import VisflyError
+
+    try:
+        return _preview(args)
+    except Exception as exc:  # noqa: BLE001 - the CLI boundary: any failure becomes one line, exit 2
+        message = " ".join(str(exc).split()) or "no details"
+        cause = "" if isinstance(exc, VisflyError) else f"{type(exc).__name__}: "
+        print(f"visfly-dist scenes preview: error: {cause}{message}", file=sys.stderr)
+        return 2
+
+
+def _preview(args: argparse.Namespace) -> int:
     from visfly_dist.scene_worker.preview import preview_scene
     from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source, split_path_source
     from visfly_dist.scenes.storage import load_scene
