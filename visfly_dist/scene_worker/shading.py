@@ -58,6 +58,18 @@ class SurfaceShader:
             else:
                 self.corner_rgb[start:stop] = _corner_colors(mesh)
         self._texture_starts = np.array([t[0] for t in self._textures], np.int64)
+        flat = not self._textures and bool(np.all(self.corner_rgb == self.corner_rgb[:, :1]))
+        self._flat_tables: dict[tuple[int, ...], np.ndarray] | None = {} if flat else None
+
+    def flat_table(self, sky: Sequence[int]) -> np.ndarray | None:
+        """Lit colour per face + 1 ``(F + 1, 3)`` uint8 (row 0: ``sky``) when every face is one colour, else None."""
+        if self._flat_tables is None:
+            return None
+        key = tuple(int(c) for c in sky)
+        if key not in self._flat_tables:
+            lit = self.corner_rgb[:, 0] * _light(self.normals)[:, None]
+            self._flat_tables[key] = np.concatenate([np.asarray([key], np.float64), lit]).round().astype(np.uint8)
+        return self._flat_tables[key]
 
     def faces(self, geometry_id: np.ndarray, primitive_id: np.ndarray) -> np.ndarray:
         """Global face index of each hit (``-1`` stays ``-1``: a miss)."""
@@ -111,6 +123,9 @@ def shade_rgb(shader: SurfaceShader, camera: CameraSpec, poses: np.ndarray, dept
         face: ``(n, H*W)`` global face index + 1 of each pixel's hit (0: none).
         sky: colour of misses.
     """
+    table = shader.flat_table(sky)
+    if table is not None:    # flat colours only: no barycentrics needed
+        return table[face]
     out = np.empty((*face.shape, 3), np.uint8)
     out[...] = np.asarray(sky, np.uint8)
     agent, pixel = np.nonzero(face)
@@ -121,8 +136,7 @@ def shade_rgb(shader: SurfaceShader, camera: CameraSpec, poses: np.ndarray, dept
     rays = pixel_rays(camera)[pixel] * depth[agent, pixel, None].astype(np.float64)
     points = origins[agent] + np.einsum("kij,kj->ki", rots[agent], rays)
     u, v = barycentrics(shader.vertices[shader.face_vertices[hit_face]], points)
-    light = AMBIENT + (1.0 - AMBIENT) * np.abs(shader.normals[hit_face] @ np.asarray(LIGHT_DIRECTION))
-    lit = shader.colors(hit_face, u, v) * light[:, None].astype(np.float32)
+    lit = shader.colors(hit_face, u, v) * _light(shader.normals[hit_face])[:, None].astype(np.float32)
     out[agent, pixel] = np.clip(np.round(lit), 0, 255).astype(np.uint8)
     return out
 
@@ -136,6 +150,11 @@ def barycentrics(triangles: np.ndarray, points: np.ndarray) -> tuple[np.ndarray,
     det = d11 * d22 - d12 * d12
     det = np.where(np.abs(det) > 1e-30, det, 1.0)    # degenerate triangles: the first corner
     return (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
+
+
+def _light(normals: np.ndarray) -> np.ndarray:
+    """Brightness under the shared light of :mod:`render_base` (two-sided Lambert plus ambient)."""
+    return AMBIENT + (1.0 - AMBIENT) * np.abs(normals @ np.asarray(LIGHT_DIRECTION))
 
 
 def _texture(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
