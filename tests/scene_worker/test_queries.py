@@ -102,3 +102,72 @@ def test_bad_input_is_refused(queries):
         queries.query(np.zeros(3), 1.0)
     with pytest.raises(ConfigError, match="search_radius=-1.0"):
         queries.query(np.zeros((1, 3)), -1.0)
+
+
+def _split_vertex_glb(tmp_path, name: str, meshes) -> "Scene":
+    """Meshes written to one glb with every face on its own vertices (as glTF exporters split them)."""
+    from visfly_dist.scenes import load_scene
+
+    tscene = trimesh.Scene()
+    for i, mesh in enumerate(meshes):
+        split = mesh.copy()
+        split.unmerge_vertices()
+        tscene.add_geometry(split, node_name=f"{name}{i}")
+    tscene.export(tmp_path / f"{name}.glb")
+    scene = load_scene(tmp_path / f"{name}.glb", up_axis="z")
+    assert not any(o.mesh.is_watertight for o in scene.objects)   # what used to hide the inside
+    return scene
+
+
+def test_split_vertex_glb_box_and_sphere_are_solid(tmp_path):
+    box = trimesh.creation.box((2.0, 2.0, 2.0))
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    sphere.apply_translation([5.0, 0.0, 0.0])
+    scene = _split_vertex_glb(tmp_path, "solids", [box, sphere])
+    q = ObstacleQueries(scene, drone_radius=RADIUS)
+    r = q.query(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [5.3, 0.2, -0.1], [2.5, 0.0, 0.0]]), 5.0)
+    np.testing.assert_array_equal(r.inside, [True, True, True, False])
+    np.testing.assert_array_equal(r.collision, [True, True, True, False])
+    np.testing.assert_array_equal(r.distance[:3], 0.0)
+
+
+def test_open_plane_and_open_box_have_no_inside(tmp_path):
+    plane = trimesh.Trimesh([[-5, -5, 0], [5, -5, 0], [5, 5, 0], [-5, 5, 0]], [[0, 1, 2], [0, 2, 3]])
+    lidless = trimesh.creation.box((2.0, 2.0, 2.0))
+    lidless.update_faces(lidless.face_normals[:, 2] < 0.5)      # the top face removed
+    lidless.apply_translation([0.0, 0.0, 3.0])
+    scene = _split_vertex_glb(tmp_path, "open", [plane, lidless])
+    q = ObstacleQueries(scene, drone_radius=RADIUS)
+    points = np.random.default_rng(0).uniform([-4, -4, -2], [4, 4, 5], size=(300, 3))
+    points[:50] = np.random.default_rng(1).uniform([-0.9, -0.9, 2.1], [0.9, 0.9, 3.9], size=(50, 3))
+    assert not q.query(points, 5.0).inside.any()
+    assert np.all(q.distance(points) >= 0)
+
+
+def test_overlapping_closed_parts_of_one_object_are_each_solid():
+    a = trimesh.creation.box((2.0, 2.0, 2.0))
+    b = trimesh.creation.box((2.0, 2.0, 2.0))
+    b.apply_translation([1.0, 0.0, 0.0])
+    both = trimesh.util.concatenate([a, b])      # one object, two closed components overlapping
+    q = ObstacleQueries(Scene("o", [SceneObject("two", 1, both)], np.array([[-5] * 3, [5] * 3])), RADIUS)
+    np.testing.assert_array_equal(q.query(np.array([[0.5, 0.0, 0.0], [-0.5, 0, 0], [1.5, 0, 0], [3, 0, 0]]), 5.0).inside,
+                                  [True, True, True, False])
+
+
+def test_no_spawn_inside_a_closed_obstacle(tmp_path):
+    from visfly_dist.scenes import sample_free_positions
+
+    scene = _split_vertex_glb(tmp_path, "block", [trimesh.creation.box((2.0, 2.0, 2.0))])
+    q = ObstacleQueries(scene, drone_radius=RADIUS)
+    spawns = sample_free_positions(200, 0.5, "uniform", [-1.5] * 3, [1.5] * 3, np.random.default_rng(0), q.distance)
+    outside_by = np.linalg.norm(spawns - np.clip(spawns, -1.0, 1.0), axis=1)
+    assert np.all(outside_by >= 0.5 - 1e-6)
+
+
+def test_a_closed_room_facing_inwards_is_free_space_inside():
+    room = trimesh.creation.box((10.0, 10.0, 4.0))
+    room.invert()                                   # normals inwards: a room seen from within
+    q = ObstacleQueries(Scene("room", [SceneObject("room", 1, room)], np.array([[-5, -5, -2], [5, 5, 2]])), RADIUS)
+    r = q.query(np.array([[0.0, 0.0, 0.0], [4.0, 4.0, 1.5]]), 5.0)
+    np.testing.assert_array_equal(r.inside, [False, False])
+    np.testing.assert_allclose(r.distance, [2.0, 0.5], atol=1e-6)

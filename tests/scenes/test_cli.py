@@ -56,3 +56,36 @@ def test_user_errors_exit_2_with_one_line(tmp_path):
     assert "unknown scene kind 'volcano'; valid kinds:" in done.stderr and "Traceback" not in done.stderr
     done = run_cli("generate", "empty", "--out", str(tmp_path / "x"), "--param", "density")
     assert done.returncode == 2 and "--param 'density' must look like key=value" in done.stderr
+
+
+@pytest.mark.parametrize("backend", ["raycast", "egl"])
+def test_preview_of_a_textured_glb_with_up_option(tmp_path, backend):
+    from tests.scene_worker.test_shading import textured_quad
+
+    floor = textured_quad()
+    floor.apply_translation([-3.0, 0.0, 0.0])
+    floor.export(tmp_path / "wall.glb")
+    png = tmp_path / "wall.png"
+    done = run_cli("preview", f"{tmp_path / 'wall.glb'}?up=z", "--out", str(png), "--backend", backend)
+    assert done.returncode == 0, done.stderr
+    assert png.stat().st_size > 10_000
+
+
+def test_every_preview_failure_is_one_line_and_exit_code_2(tmp_path):
+    (tmp_path / "a_directory.png").mkdir()
+    trimesh_box = tmp_path / "box.stl"
+    import trimesh
+
+    trimesh.creation.box().export(trimesh_box)
+    failures = {
+        "missing": ("preview", str(tmp_path / "missing.glb"), "--out", str(tmp_path / "x.png")),
+        "bad option": ("preview", f"{trimesh_box}?up=q", "--out", str(tmp_path / "x.png")),
+        "unwritable out": ("preview", str(trimesh_box), "--out", str(tmp_path / "a_directory.png")),
+        "garbage mesh": ("preview", str(tmp_path / "junk.glb"), "--out", str(tmp_path / "x.png")),
+    }
+    (tmp_path / "junk.glb").write_bytes(b"not a glb at all")
+    for what, args in failures.items():
+        done = run_cli(*args)
+        assert done.returncode == 2, (what, done.stderr)
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("visfly-dist scenes preview: error: "), (what, done.stderr)

@@ -83,3 +83,46 @@ def test_mesh_files_of_a_scene_dir_stay_inside(root, tmp_path):
     with pytest.raises(SceneError, match="evil.ply"):
         resolve_source("pad", roots=[root])
     assert np.all(resolve_source("box.stl", roots=[root]).bounds[1] == 0.5)
+
+
+@pytest.fixture
+def tall_glb(root):
+    """A 1 x 1 x 4 m box authored z-up (its long side along z), saved as glb (y-up by specification)."""
+    trimesh.creation.box((1.0, 1.0, 4.0), transform=trimesh.transformations.translation_matrix([0, 0, 2])).export(
+        root / "tall.glb")
+    return "tall.glb"
+
+
+def test_up_axis_travels_in_the_source_string(root, tall_glb):
+    upright = resolve_source(f"{tall_glb}?up=z", roots=[root])
+    np.testing.assert_allclose(upright.bounds, [[-0.5, -0.5, 0.0], [0.5, 0.5, 4.0]], atol=1e-9)
+    assert upright.metadata["up_axis"] == "z"
+    lying = resolve_source(tall_glb, roots=[root])               # glTF default y-up: on its side
+    np.testing.assert_allclose(lying.bounds, [[-0.5, -4.0, -0.5], [0.5, 0.0, 0.5]], atol=1e-9)
+    assert resolve_source(f"{tall_glb}?up=y", roots=[root]).metadata["up_axis"] == "y"
+
+
+def test_worker_load_request_and_env_sources_carry_the_up_axis(root, tall_glb):
+    from visfly_dist.aggregator.dataset import expand_sources
+    from visfly_dist.protocol.cameras import CameraSpec
+    from visfly_dist.protocol.messages import LoadScene
+    from visfly_dist.scene_worker.state import build_scene
+
+    loaded = build_scene(LoadScene("k", f"{tall_glb}?up=z", (CameraSpec(width=8, height=8),)), [root], "raycast")
+    try:
+        assert loaded.scene.bounds[1, 2] == pytest.approx(4.0)
+    finally:
+        loaded.renderer.close()
+    assert expand_sources(("*.glb?up=z", str(root / "tall.glb") + "?up=y"), (str(root),)) == ["tall.glb?up=z", "tall.glb?up=y"]
+
+
+@pytest.mark.parametrize("source, message", [
+    ("tall.glb?up=x", r"option 'up=x' is not valid; accepted: up=y\|z"),
+    ("tall.glb?upp=z", r"option 'upp=z' is not valid"),
+    ("tall.glb?up", r"option 'up' is not valid"),
+    ("tall.glb?up=z&up=y", r"option 'up=y' is not valid.*at most once"),
+    ("pad/scene.json?up=z", r"apply to mesh files .* only"),
+])
+def test_bad_source_options_are_refused(root, tall_glb, source, message):
+    with pytest.raises(SceneError, match=message):
+        resolve_source(source, roots=[root])

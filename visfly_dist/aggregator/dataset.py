@@ -61,12 +61,24 @@ def _relative_to_roots(path: str, roots: tuple[str, ...]) -> str | None:
 def expand_sources(sources: tuple[str, ...], roots: tuple[str, ...]) -> list[str]:
     """Expand globs and check every source; raise ConfigError listing every problem.
 
-    Returns concrete sources: generator specs unchanged, paths relative to their root.
+    Returns concrete sources: generator specs unchanged, paths relative to their root (mesh load
+    options such as ``?up=z`` kept on every match).
     """
+    from visfly_dist.scenes.sources import split_path_source
+
     out: list[str] = []
     problems: list[str] = []
     roots_hint = f"scene_roots={list(roots)}" if roots else "no scene_roots were given"
     for source in sources:
+        options = ""
+        if not source.startswith(GEN_PREFIX):   # mesh load options (``room.glb?up=z``) travel along
+            try:
+                path, parsed = split_path_source(source)
+            except SceneError as exc:
+                problems.append(str(exc))
+                continue
+            if parsed:
+                source, options = path, source[len(path):]
         if source.startswith(GEN_PREFIX):
             problem = _check_gen_spec(source)
             if problem:
@@ -78,7 +90,7 @@ def expand_sources(sources: tuple[str, ...], roots: tuple[str, ...]) -> list[str
                               for m in glob.glob(os.path.join(root, source), recursive=True)})
             if not matches:
                 problems.append(f"glob {source!r} matches nothing under {roots_hint}")
-            out.extend(matches)
+            out.extend(m + options for m in matches)
         elif os.path.isabs(source):
             rel = _relative_to_roots(source, roots)
             if not os.path.exists(source):
@@ -86,9 +98,9 @@ def expand_sources(sources: tuple[str, ...], roots: tuple[str, ...]) -> list[str
             elif rel is None:
                 problems.append(f"scene path {source!r} is outside the scene roots ({roots_hint}); add its folder to scene_roots")
             else:
-                out.append(rel)
+                out.append(rel + options)
         elif any(os.path.exists(os.path.join(root, source)) for root in roots):
-            out.append(os.path.normpath(source))
+            out.append(os.path.normpath(source) + options)
         else:
             problems.append(f"scene path {source!r} not found under {roots_hint}; give a path relative to a root, or a 'gen:KIND' spec")
     if problems:

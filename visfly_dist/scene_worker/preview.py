@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.scene_worker.render_base import make_renderer
-from visfly_dist.scene_worker.render_raycast import face_rgb
+from visfly_dist.scene_worker.render_base import face_rgb, make_renderer
 from visfly_dist.scenes.scene import Scene
 
 
@@ -43,6 +42,14 @@ def preview_scene(scene: Scene, out: Path, backend: str = "raycast", width: int 
 
     rows = len(poses)
     fig = plt.figure(figsize=(16, 3.2 * rows + 0.6))
+    try:
+        return _draw_sheet(fig, scene, eyes, images, renderer.name, far, Path(out))
+    finally:
+        plt.close(fig)
+
+
+def _draw_sheet(fig, scene: Scene, eyes: np.ndarray, images: dict, backend: str, far: float, out: Path) -> Path:
+    rows = len(eyes)
     grid = fig.add_gridspec(rows, 4, width_ratios=[1, 1, 1, 1.6])
     for row in range(rows):
         rgb_ax, depth_ax, seg_ax = (fig.add_subplot(grid[row, col]) for col in range(3))
@@ -55,15 +62,13 @@ def preview_scene(scene: Scene, out: Path, backend: str = "raycast", width: int 
             ax.set_xticks([])
             ax.set_yticks([])
         if row == 0:
-            rgb_ax.set_title(f"RGB ({renderer.name})")
+            rgb_ax.set_title(f"RGB ({backend})")
             depth_ax.set_title("depth")
             seg_ax.set_title("segmentation")
     _top_down_map(fig.add_subplot(grid[:, 3]), scene, eyes)
     fig.suptitle(f"{scene.name}: {len(scene.objects)} objects, {scene.num_triangles} triangles")
-    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=80, bbox_inches="tight")
-    plt.close(fig)
     return out
 
 

@@ -3,12 +3,14 @@
 For each drone centre ``p`` (a sphere of ``drone_radius``):
 
 - ``distance``: metric distance from the drone's CENTRE to the nearest obstacle surface, capped at
-  the search radius; 0 when the centre is inside a closed obstacle.
+  the search radius; 0 when the centre is inside a solid obstacle.
 - ``nearest``: the world point at ``distance`` from ``p`` towards the nearest surface point, that
   is the nearest surface point itself when it lies within the search radius (so
   ``|nearest - p| == distance`` always, except inside an obstacle, where ``nearest`` is the nearest
   surface point: the way out). In an empty scene the direction is straight down.
-- ``inside``: the centre lies inside a closed (watertight) obstacle.
+- ``inside``: the centre lies inside a solid obstacle: a connected component that is closed on
+  merged vertices and faces outwards (:mod:`visfly_dist.scenes.solids`; glTF's split vertices do not
+  make a box open).
 - ``collision``: the sphere touches or overlaps an obstacle: ``true distance <= drone_radius`` or
   ``inside``.
 
@@ -17,8 +19,14 @@ the centre, mesh first so FCL reports the world nearest point exactly. Querying 
 point sidesteps FCL's garbage answers for overlapping shapes (a point overlaps nothing unless it
 lies on a surface, where the answer is 0 and the point itself), and one distance answers collision
 too (a sphere touches a mesh iff its centre is within ``drone_radius`` of a triangle). A sphere
-wholly inside a closed obstacle touches no triangle, so inside-ness is its own test: ray parity per
-closed object with Embree, the majority of three skewed rays.
+wholly inside a solid obstacle touches no triangle, so inside-ness is its own test: ray parity per
+solid component with Embree (over the solids' triangles only), the majority of three skewed rays,
+cast only from points that can be inside a solid: no farther from a surface than the deepest point
+of any solid (half the smallest side of its bounding box) and inside some solid's bounding box.
+
+Cost: FCL has no batched distance, so the nearest-point query is one FCL call per position (the
+loop body is kept to the call itself); everything else (the inside test, the answer arithmetic) is
+vectorised over positions.
 """
 
 from __future__ import annotations
@@ -32,10 +40,12 @@ from embreex.mesh_construction import TriangleMesh
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.scenes.scene import Scene
+from visfly_dist.scenes.solids import solid_components
 
 PARITY_DIRECTIONS = np.array([[0.5377, 0.2841, 0.7938], [-0.6712, 0.4395, -0.5968], [0.1832, -0.9127, 0.3651]])
 MAX_CROSSINGS = 512
 CROSSING_STEP = 1e-4   # metres a parity ray moves past each surface it crosses
+BOX_CHECK_CHUNK = 1 << 20   # (position, component) pairs tested per bounding-box chunk
 
 
 @dataclass(frozen=True)
@@ -44,7 +54,7 @@ class QueryResult:
 
     Attributes:
         collision: ``(n,)`` bool, the drone's sphere touches an obstacle or its centre is inside one.
-        inside: ``(n,)`` bool, the centre is inside a closed obstacle.
+        inside: ``(n,)`` bool, the centre is inside a solid obstacle.
         nearest: ``(n, 3)`` float32 world point towards the nearest obstacle surface.
         distance: ``(n,)`` float32 centre-to-surface distance in ``[0, search_radius]``.
     """
@@ -81,11 +91,33 @@ class ObstacleQueries:
         self._bvh = fcl.CollisionObject(model)
         self._point = fcl.CollisionObject(fcl.Sphere(0.0))
         self._request = fcl.DistanceRequest(enable_nearest_points=True)
-        self._closed = np.array([o.mesh.is_watertight for o in objects])
-        if self._closed.any():
-            self._embree = rtcore_scene.EmbreeScene()
-            TriangleMesh(self._embree, vertices[faces].astype(np.float32))
-            self._face_object = np.concatenate([np.full(len(o.mesh.faces), i) for i, o in enumerate(objects)])
+        self._build_parity(vertices, faces, objects)
+
+    def _build_parity(self, vertices: np.ndarray, faces: np.ndarray, objects: list) -> None:
+        """Embree scene of the solids' triangles, their component ids and boxes."""
+        face_component, solid, offset = [], [], 0
+        for obj in objects:
+            components, is_solid = solid_components(obj.mesh.vertices, obj.mesh.faces)
+            face_component.append(components + offset)
+            solid.append(is_solid)
+            offset += len(is_solid)
+        face_component = np.concatenate(face_component)
+        solid = np.concatenate(solid)
+        keep = solid[face_component]
+        if not keep.any():
+            return
+        _, self._face_component = np.unique(face_component[keep], return_inverse=True)
+        triangles = vertices[faces[keep]]
+        self._num_solids = int(self._face_component.max()) + 1
+        low = np.full((self._num_solids, 3), np.inf)
+        high = np.full((self._num_solids, 3), -np.inf)
+        np.minimum.at(low, self._face_component, triangles.min(axis=1))
+        np.maximum.at(high, self._face_component, triangles.max(axis=1))
+        self._boxes = (low, high)
+        self._max_depth = float(((high - low).min(axis=1) / 2).max())
+        self._embree = rtcore_scene.EmbreeScene()
+        TriangleMesh(self._embree, triangles.astype(np.float32))
+        self._directions = (PARITY_DIRECTIONS / np.linalg.norm(PARITY_DIRECTIONS, axis=1, keepdims=True)).astype(np.float32)
 
     def query(self, positions: np.ndarray, search_radius: float) -> QueryResult:
         """Nearest obstacle, distance, collision and inside-ness of drones centred at ``positions``.
@@ -98,11 +130,9 @@ class ObstacleQueries:
         if not (np.isfinite(search_radius) and search_radius >= 0):
             raise ConfigError(f"search_radius={search_radius!r} must be a finite number >= 0")
         dist, points = self._closest(positions)
-        inside = self._inside(positions)
-        offset = points - positions
-        with np.errstate(invalid="ignore", divide="ignore"):
-            unit = np.where(dist[:, None] > 0, offset / dist[:, None], 0.0)
-        unit[~np.isfinite(dist)] = (0.0, 0.0, -1.0)
+        inside = self._inside(positions, dist)
+        unit = (points - positions) / np.where(dist > 0, dist, 1.0)[:, None]   # 0 on a surface and when empty
+        unit[dist == np.inf] = (0.0, 0.0, -1.0)
         capped = np.minimum(dist, search_radius)
         nearest = np.where(inside[:, None], points, positions + unit * capped[:, None])
         return QueryResult(
@@ -115,12 +145,12 @@ class ObstacleQueries:
     def distance(self, positions: np.ndarray) -> np.ndarray:
         """Signed distance ``(n,)`` float64 from each point to the nearest obstacle surface.
 
-        Negative inside a closed obstacle, ``inf`` in an empty scene (for spawn sampling:
+        Negative inside a solid obstacle, ``inf`` in an empty scene (for spawn sampling:
         a point is clear when ``distance > clearance + drone_radius``).
         """
         positions = _check_positions(positions)
         dist, _ = self._closest(positions)
-        return np.where(self._inside(positions), -dist, dist)
+        return np.where(self._inside(positions, dist), -dist, dist)
 
     def _closest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unsigned distance to and world nearest point on any triangle, per position."""
@@ -129,10 +159,12 @@ class ObstacleQueries:
         points = positions.copy()
         if self._bvh is None:
             return dist, points
-        for i, p in enumerate(positions):
-            self._point.setTranslation(p)
-            result = fcl.DistanceResult()
-            d = fcl.distance(self._bvh, self._point, self._request, result)
+        bvh, point, request = self._bvh, self._point, self._request
+        set_translation, distance, result_type = point.setTranslation, fcl.distance, fcl.DistanceResult
+        for i in range(n):
+            set_translation(positions[i])
+            result = result_type()
+            d = distance(bvh, point, request, result)
             if d > 0:    # 0: the point lies on a surface and is its own nearest point
                 dist[i] = d
                 points[i] = result.nearest_points[0]
@@ -140,27 +172,52 @@ class ObstacleQueries:
                 dist[i] = 0.0
         return dist, points
 
-    def _inside(self, positions: np.ndarray) -> np.ndarray:
-        """Whether each point is inside a closed object: ray parity, majority of three rays."""
+    def _inside(self, positions: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """Whether each point (``dist`` from the nearest surface) is inside a solid: ray parity, majority of three."""
         n = len(positions)
+        inside = np.zeros(n, bool)
         if self._embree is None or n == 0:
-            return np.zeros(n, bool)
-        votes = np.zeros(n, np.int64)
-        for direction in PARITY_DIRECTIONS / np.linalg.norm(PARITY_DIRECTIONS, axis=1, keepdims=True):
-            crossings = np.zeros((n, len(self._closed)), np.int64)
-            origins = positions.astype(np.float32)
-            active = np.arange(n)
-            dirs = np.tile(direction.astype(np.float32), (n, 1))
-            for _ in range(MAX_CROSSINGS):
-                hits = self._embree.run(origins[active], dirs[: len(active)], output=1)
-                hit = hits["primID"] >= 0
-                active = active[hit]
-                if not len(active):
-                    break
-                np.add.at(crossings, (active, self._face_object[hits["primID"][hit]]), 1)
-                origins[active] += (hits["tfar"][hit, None] + np.float32(CROSSING_STEP)) * dirs[: len(active)]
-            votes += ((crossings % 2 == 1) & self._closed).any(axis=1)
-        return votes >= 2
+            return inside
+        near = np.flatnonzero(dist <= self._max_depth)
+        candidates = near[self._in_some_box(positions[near])]
+        if not len(candidates):
+            return inside
+        votes = np.zeros(len(candidates), np.int64)
+        for direction in self._directions:
+            votes += self._odd_crossings(positions[candidates].astype(np.float32), direction)
+        inside[candidates] = votes >= 2
+        return inside
+
+    def _in_some_box(self, positions: np.ndarray) -> np.ndarray:
+        """Indices of the positions inside at least one solid's bounding box."""
+        low, high = self._boxes
+        step = max(1, BOX_CHECK_CHUNK // self._num_solids)
+        hits = [np.zeros(0, np.int64)]
+        for start in range(0, len(positions), step):
+            p = positions[start:start + step, None, :]
+            hits.append(start + np.flatnonzero(np.all((p >= low) & (p <= high), axis=2).any(axis=1)))
+        return np.concatenate(hits)
+
+    def _odd_crossings(self, origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Whether a ray from each origin crosses some solid an odd number of times."""
+        m = len(origins)
+        dirs = np.broadcast_to(direction, (m, 3))
+        active = np.arange(m)
+        crossings = []
+        for _ in range(MAX_CROSSINGS):
+            hits = self._embree.run(origins[active], np.ascontiguousarray(dirs[: len(active)]), output=1)
+            hit = hits["primID"] >= 0
+            active = active[hit]
+            if not len(active):
+                break
+            crossings.append(active * self._num_solids + self._face_component[hits["primID"][hit]])
+            origins[active] += (hits["tfar"][hit, None] + np.float32(CROSSING_STEP)) * direction
+        if not crossings:
+            return np.zeros(m, bool)
+        keys, counts = np.unique(np.concatenate(crossings), return_counts=True)
+        odd = np.zeros(m, bool)
+        odd[keys[counts % 2 == 1] // self._num_solids] = True
+        return odd
 
 
 def _check_positions(positions: np.ndarray) -> np.ndarray:

@@ -54,13 +54,16 @@ def drone_segmentation_id(agent_index: int | np.ndarray) -> int | np.ndarray:
 
 
 def face_rgb(mesh: trimesh.Trimesh) -> np.ndarray:
-    """Per-face RGB ``(F, 3)`` uint8 of a mesh's visual (textures averaged to face colours)."""
-    visual = mesh.visual
-    if visual is None or visual.kind is None:
-        return np.full((len(mesh.faces), 3), 128, np.uint8)
-    if visual.kind == "texture":
-        visual = visual.to_color()
-    return np.asarray(visual.face_colors, dtype=np.uint8)[:, :3]
+    """Per-face RGB ``(F, 3)`` uint8 of a mesh's visual: the colour at each face's centroid.
+
+    Textures are sampled at the centroid's UV (times the base colour factor), vertex colours
+    averaged, face colours taken as they are (see :mod:`visfly_dist.scene_worker.shading`).
+    """
+    from visfly_dist.scene_worker.shading import SurfaceShader   # shading imports this module
+
+    third = np.full(len(mesh.faces), 1.0 / 3.0)
+    colors = SurfaceShader([mesh]).colors(np.arange(len(mesh.faces)), third, third)
+    return np.clip(np.round(colors), 0, 255).astype(np.uint8)
 
 
 class Renderer(abc.ABC):

@@ -6,9 +6,8 @@ built in the world for all drones of a call from each camera's pixel slopes (a r
 column term: no BLAS, whose own threads would fight ours), started on the near plane, cut at the far
 plane, and traced in chunks of agents spread over a few threads (Embree releases the GIL).
 
-RGB is each face's colour (textures approximated by ``visual.to_color()``) lit by the fixed light of
-:mod:`render_base` (two-sided Lambert plus ambient); since the light is fixed in the world, the lit
-colour of a face is computed once. Other drones are spheres intersected analytically after the
+RGB is the surface colour at each hit (:mod:`shading`: the texture sampled at the hit's UV, or
+face/vertex colours) lit by the fixed light of :mod:`render_base` (two-sided Lambert plus ambient). Other drones are spheres intersected analytically after the
 Embree pass, the nearer hit winning.
 """
 
@@ -26,8 +25,9 @@ from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays, pixel_slopes, spheres_in_view
 from visfly_dist.scene_worker.render_base import (
-    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id, face_rgb,
+    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id,
 )
+from visfly_dist.scene_worker.shading import SurfaceShader, shade_rgb
 from visfly_dist.scenes.scene import Scene
 
 RAYS_PER_CHUNK = 1 << 15
@@ -64,10 +64,7 @@ class RaycastRenderer(Renderer):
             TriangleMesh(self._embree, np.concatenate([m.triangles for m in meshes]).astype(np.float32))
         self._object_ids = np.concatenate(
             [np.zeros(1, np.uint16)] + [np.full(len(o.mesh.faces), o.object_id, np.uint16) for o in scene.objects])
-        self._face_rgb = None
-        if any(c.kind == "rgb" for c in self.cameras):
-            lit = [face_rgb(m) * lambert(m.face_normals)[:, None] for m in meshes]
-            self._face_rgb = np.concatenate([np.array([SKY_RGB], np.float64)] + lit).round().astype(np.uint8)
+        self._shader = SurfaceShader(meshes) if any(c.kind == "rgb" for c in self.cameras) else None
         self._rays = {c.name: pixel_rays(c) for c in self.cameras}
         self._slopes = {c.name: tuple(s.astype(np.float32) for s in pixel_slopes(c)) for c in self.cameras}
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="raycast") if threads > 1 else None
@@ -93,7 +90,7 @@ class RaycastRenderer(Renderer):
                     seg[hit] = drone_segmentation_id(drone[hit])
                 out[cam.name] = seg.reshape(shape)
             else:
-                rgb = self._face_rgb[face]
+                rgb = shade_rgb(self._shader, cam, poses, depth, face, SKY_RGB)
                 if drone is not None:
                     hit = drone >= 0
                     rgb[hit] = (np.asarray(DRONE_RGB) * drone_light[hit][:, None]).round().astype(np.uint8)

@@ -10,6 +10,7 @@ Heavy imports (trimesh, renderers, matplotlib) happen inside the commands, so ``
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from visfly_dist.errors import SceneError
@@ -29,7 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gen.set_defaults(func=generate)
 
     preview = sub.add_parser("preview", help="draw RGB/depth/segmentation views and a top-down map to a PNG")
-    preview.add_argument("scene", help="scene path (directory, scene.json, mesh, *.scene_instance.json) or gen: spec")
+    preview.add_argument("scene", help="scene path (directory, scene.json, mesh[?up=y|z], *.scene_instance.json) or gen: spec")
     preview.add_argument("--out", required=True, type=Path, help="PNG file to write")
     preview.add_argument("--backend", choices=("raycast", "egl"), default="raycast", help="renderer (default raycast)")
     preview.set_defaults(func=preview_command)
@@ -52,11 +53,28 @@ def generate(args: argparse.Namespace) -> int:
 
 
 def preview_command(args: argparse.Namespace) -> int:
+    """Draw the preview sheet; every failure is reported as one line on stderr with exit code 2."""
+    from visfly_dist.errors import VisflyError
+
+    try:
+        return _preview(args)
+    except Exception as exc:  # noqa: BLE001 - the CLI boundary: any failure becomes one line, exit 2
+        message = " ".join(str(exc).split()) or "no details"
+        cause = "" if isinstance(exc, VisflyError) else f"{type(exc).__name__}: "
+        print(f"visfly-dist scenes preview: error: {cause}{message}", file=sys.stderr)
+        return 2
+
+
+def _preview(args: argparse.Namespace) -> int:
     from visfly_dist.scene_worker.preview import preview_scene
-    from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source
+    from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source, split_path_source
     from visfly_dist.scenes.storage import load_scene
 
-    scene = resolve_source(args.scene, roots=[]) if args.scene.startswith(GEN_PREFIX) else load_scene(args.scene)
+    if args.scene.startswith(GEN_PREFIX):
+        scene = resolve_source(args.scene, roots=[])
+    else:
+        path, options = split_path_source(args.scene)
+        scene = load_scene(path, up_axis=options.get("up"))
     out = preview_scene(scene, args.out, backend=args.backend)
     print(f"wrote preview of {scene.name} to {out}")
     return 0

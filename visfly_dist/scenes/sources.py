@@ -2,6 +2,12 @@
 
 Sources are what travels on the wire (``LoadScene``), so a path is only accepted when it resolves
 (``..`` and symlinks followed) inside one of the worker's configured roots.
+
+A mesh file path may carry load options after a ``?``, so they travel in the source string and the
+wire needs no field for them: ``rooms/hall.glb?up=z`` loads a z-up glb (``up`` is ``y`` or ``z``; the
+default is the format's, see :mod:`visfly_dist.scenes.meshes`). Options are recognised after the
+last ``?`` when that part holds a ``=`` or the path before it ends in a mesh suffix; anything but
+``up=y|z`` on a mesh file is refused.
 """
 
 from __future__ import annotations
@@ -13,12 +19,15 @@ from urllib.parse import parse_qsl
 
 from visfly_dist.errors import SceneError
 from visfly_dist.scenes.generators import generate_scene, parse_value
+from visfly_dist.scenes.meshes import MESH_SUFFIXES, UP_AXES
 from visfly_dist.scenes.paths import PathLike, is_inside, normalize_roots
 from visfly_dist.scenes.scene import Scene
 from visfly_dist.scenes.storage import load_scene
 
 GEN_PREFIX = "gen:"
 GENERATED_CACHE_SIZE = 8
+PATH_OPTIONS = {"up": UP_AXES}
+"""Options a mesh-file source may carry after ``?``, with their accepted values."""
 
 
 def parse_gen_spec(spec: str) -> tuple[str, int, dict[str, Any]]:
@@ -44,6 +53,31 @@ def parse_gen_spec(spec: str) -> tuple[str, int, dict[str, Any]]:
     return kind, seed, params
 
 
+def split_path_source(source: str) -> tuple[str, dict[str, str]]:
+    """Split a path source into the path and its validated options (module docstring).
+
+    ``"rooms/hall.glb?up=z"`` gives ``("rooms/hall.glb", {"up": "z"})``; a source without options
+    gives ``(source, {})``.
+
+    Raises:
+        SceneError: malformed options, an unknown option or value, or options on a non-mesh path.
+    """
+    path, sep, query = source.rpartition("?")
+    if not sep or "/" in query or not ("=" in query or path.lower().endswith(MESH_SUFFIXES)):
+        return source, {}
+    accepted = ", ".join(f"{k}={'|'.join(v)}" for k, v in PATH_OPTIONS.items())
+    if not path.lower().endswith(MESH_SUFFIXES):
+        raise SceneError(f"scene source {source!r}: options ({accepted}) apply to mesh files {list(MESH_SUFFIXES)} only")
+    options: dict[str, str] = {}
+    for item in query.split("&"):
+        key, eq, value = item.partition("=")
+        if not eq or key not in PATH_OPTIONS or value not in PATH_OPTIONS[key] or key in options:
+            raise SceneError(f"scene source {source!r}: option {item!r} is not valid; accepted: {accepted}, "
+                             f"each at most once, joined by '&', e.g. 'room.glb?up=z'")
+        options[key] = value
+    return path, options
+
+
 def resolve_source(source: str, roots: Iterable[PathLike]) -> Scene:
     """The scene named by ``source``: a ``gen:`` spec, or a path inside one of ``roots``.
 
@@ -52,7 +86,7 @@ def resolve_source(source: str, roots: Iterable[PathLike]) -> Scene:
 
     Args:
         source: ``"gen:KIND?seed=S&key=value"``, or a path relative to a root (tried in order), or
-            an absolute path inside a root.
+            an absolute path inside a root; a mesh file path may end in ``?up=y|z``.
         roots: directories scene files may be read from.
 
     Raises:
@@ -66,7 +100,8 @@ def resolve_source(source: str, roots: Iterable[PathLike]) -> Scene:
     resolved_roots = normalize_roots(roots) or []
     if not resolved_roots:
         raise SceneError(f"scene path {source!r} given but no scene roots are configured; use a 'gen:' spec or add a root")
-    path = Path(source)
+    path_text, options = split_path_source(source)
+    path = Path(path_text)
     candidates = [path] if path.is_absolute() else [root / path for root in resolved_roots]
     inside = [c for c in candidates if is_inside(c, resolved_roots)]
     if not inside:
@@ -76,7 +111,7 @@ def resolve_source(source: str, roots: Iterable[PathLike]) -> Scene:
         )
     for candidate in inside:
         if candidate.exists():
-            return load_scene(candidate, roots=resolved_roots)
+            return load_scene(candidate, up_axis=options.get("up"), roots=resolved_roots)
     raise SceneError(f"scene path {source!r} not found under the scene roots {[str(r) for r in resolved_roots]}")
 
 
