@@ -13,7 +13,7 @@ from typing import Any, Mapping
 import msgpack
 import numpy as np
 
-from visfly_dist.errors import ProtocolError
+from visfly_dist.errors import ErrorCode, ProtocolError
 
 PROTOCOL_VERSION = 1
 MAX_MESSAGE_BYTES = 512 * 1024 * 1024
@@ -43,7 +43,8 @@ def _object_hook(d: dict) -> Any:
     dtype, shape, data = d.get("dtype"), d.get("shape"), d.get("data")
     if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
         raise ProtocolError(f"array dtype {dtype!r} not allowed; allowed: {sorted(ALLOWED_DTYPES)}")
-    if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape) or len(shape) > 8:
+    if (not isinstance(shape, list) or len(shape) > 8
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)):
         raise ProtocolError(f"array shape {shape!r} must be a list of at most 8 non-negative ints")
     if not isinstance(data, (bytes, bytearray)):
         raise ProtocolError("array data must be bytes")
@@ -83,13 +84,14 @@ def decode(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     if not isinstance(msg, dict):
         raise ProtocolError(f"a message must be a map, got {type(msg).__name__}")
     version = msg.get("version")
-    if version != PROTOCOL_VERSION:
+    if type(version) is not int or version != PROTOCOL_VERSION:  # True == 1 and 1.0 == 1 are refused
         raise ProtocolError(f"protocol version {version!r} not supported; this side speaks {PROTOCOL_VERSION}")
     if not isinstance(msg.get("type"), str):
         raise ProtocolError("message has no string 'type'")
     return msg
 
 
-def error_message(error_type: str, message: str) -> bytes:
-    """An encoded error reply (sent with ``reply_err``)."""
-    return encode({"type": "error", "error": error_type, "message": message})
+def error_message(error_type: str, code: ErrorCode, message: str) -> bytes:
+    """An encoded error reply (sent with ``reply_err``): ``{"type": "error", "error": error_type,
+    "code": code, "message": message}``; ``code`` is one of :class:`~visfly_dist.errors.ErrorCode`."""
+    return encode({"type": "error", "error": error_type, "code": ErrorCode(code).value, "message": message})
