@@ -220,8 +220,8 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
         if not source or len(source) > MAX_SOURCE_CHARS or "\x00" in source:
             raise ProtocolError(f"{what}: source must be a non-empty string under {MAX_SOURCE_CHARS} chars")
         cams = _get(msg, "cameras", list, what)
-        if len(cams) > MAX_CAMERAS:
-            raise ProtocolError(f"{what}: {len(cams)} cameras exceed the bound {MAX_CAMERAS}")
+        if not 1 <= len(cams) <= MAX_CAMERAS:
+            raise ProtocolError(f"{what}: {len(cams)} cameras must be between 1 and the bound {MAX_CAMERAS}")
         try:
             cameras = tuple(CameraSpec.from_dict(c) for c in cams)
         except ConfigError as exc:
