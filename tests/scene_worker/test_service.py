@@ -19,7 +19,7 @@ from visfly_dist.protocol.codec import PROTOCOL_VERSION, encode
 from visfly_dist.protocol.messages import (
     Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene,
 )
-from visfly_dist.scene_worker import shm
+from visfly_dist.protocol import shm
 from visfly_dist.scene_worker.queries import ObstacleQueries
 from visfly_dist.scene_worker.render_base import make_renderer
 from visfly_dist.scenes import resolve_source

@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
                         format="%(asctime)s worker %(process)d %(levelname)s %(message)s")
 
     from visfly_dist.scene_worker.service import SceneWorker
-    from visfly_dist.scene_worker.shm import remove_own_segments
+    from visfly_dist.protocol.shm import release_segments
 
     worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id, limits=limits)
     original_ppid = os.getppid()
@@ -119,5 +119,5 @@ def run(args: argparse.Namespace) -> int:
         worker.serve(should_stop=should_stop)
     finally:
         worker.close()
-    remove_own_segments()
+    release_segments()
     return 0
