@@ -1,23 +1,61 @@
-"""The exception hierarchy shared by every part of visfly-dist.
+"""The exception hierarchy shared by every part of visfly-dist, and the wire's error codes.
 
-Errors raised on user input name the value, what is accepted and the likely fix.
+Errors raised on user input name the value, what is accepted and the likely fix. Every error a
+worker sends back carries a machine-readable :class:`ErrorCode` (``docs/PROTOCOL.md``): callers
+test the code, never the message text.
 """
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Any, Mapping
+
+
+class ErrorCode(StrEnum):
+    """Machine-readable cause of an error reply (the ``code`` field on the wire)."""
+
+    BAD_REQUEST = "bad_request"        # malformed or invalid request: fix the sender
+    TOO_LARGE = "too_large"            # valid but beyond this worker's bounds (pixels, key length): split it
+    UNKNOWN_SCENE = "unknown_scene"    # the scene key is not loaded here (e.g. the worker restarted)
+    SCENE_LOADING = "scene_loading"    # the scene key is still loading: retry after its load reply
+    SCENE_ERROR = "scene_error"        # the scene cannot be loaded/generated/sampled as asked
+    OVERLOADED = "overloaded"          # the worker is full (scenes per worker): use another worker
+    SHUTTING_DOWN = "shutting_down"    # the worker is stopping: use another worker
+    INTERNAL = "internal"              # a bug on the worker (logged there with its traceback)
 
 
 class VisflyError(Exception):
-    """Base class of every error visfly-dist raises on purpose."""
+    """Base class of every error visfly-dist raises on purpose.
+
+    Args:
+        *args: the message.
+        code: the wire code of this error; default the class's ``code``.
+    """
+
+    code: ErrorCode = ErrorCode.INTERNAL
+
+    def __init__(self, *args: object, code: ErrorCode | None = None) -> None:
+        super().__init__(*args)
+        if code is not None:
+            self.code = ErrorCode(code)
 
 
 class ConfigError(VisflyError, ValueError):
     """A configuration value is invalid; raised before any work starts."""
 
+    code = ErrorCode.BAD_REQUEST
+
 
 class SceneError(VisflyError):
     """A scene cannot be found, loaded, generated or is outside the allowed roots."""
 
+    code = ErrorCode.SCENE_ERROR
+
 
 class ProtocolError(VisflyError):
     """A message on the wire is malformed, of the wrong version, or fails validation."""
+
+    code = ErrorCode.BAD_REQUEST
 
 
 class TransportTimeoutError(VisflyError):
@@ -38,10 +76,28 @@ class NoWorkersError(VisflyError):
 
 
 class RemoteError(VisflyError):
-    """A worker answered a request with an error reply (its type and message are kept)."""
+    """A worker answered a request with an error reply (its type, code and message are kept).
 
-    def __init__(self, worker_id: str, error_type: str, message: str) -> None:
-        super().__init__(f"worker {worker_id!r} replied {error_type}: {message}")
+    Attributes:
+        worker_id: the worker that answered.
+        error_type: the exception class name on the worker (``SceneError``...).
+        code: the :class:`ErrorCode`; test this, not the message.
+        message: the worker's message.
+    """
+
+    def __init__(self, worker_id: str, error_type: str, message: str,
+                 code: ErrorCode | str = ErrorCode.INTERNAL) -> None:
+        super().__init__(f"worker {worker_id!r} replied {error_type} ({code}): {message}")
         self.worker_id = worker_id
         self.error_type = error_type
         self.message = message
+        self.code = ErrorCode(code) if code in ErrorCode._value2member_map_ else ErrorCode.INTERNAL
+
+    @classmethod
+    def from_reply(cls, worker_id: str, reply: Mapping[str, Any]) -> "RemoteError":
+        """Build from a decoded error reply ``{"type": "error", "error", "code", "message"}``.
+
+        A missing or unknown code reads as ``internal`` (a worker speaking a newer protocol).
+        """
+        return cls(worker_id, str(reply.get("error", "Error")), str(reply.get("message", "")),
+                   str(reply.get("code", ErrorCode.INTERNAL)))

@@ -8,7 +8,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from visfly_dist.errors import ProtocolError
+from visfly_dist.errors import ErrorCode, ProtocolError, RemoteError
 from visfly_dist.protocol import codec
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.codec import PROTOCOL_VERSION, decode, encode, error_message
@@ -71,9 +71,21 @@ def test_replies_round_trip_with_plain_values_and_numpy_scalars():
     assert out["images"]["depth"].shape == (2, 1, 4, 4) and out["distance"] == 1.5
 
 
-def test_error_message_carries_type_and_message():
-    out = decode(error_message("SceneError", "no such scene"))
-    assert out == {"version": PROTOCOL_VERSION, "type": "error", "error": "SceneError", "message": "no such scene"}
+def test_error_message_carries_type_code_and_message():
+    out = decode(error_message("SceneError", ErrorCode.UNKNOWN_SCENE, "no such scene"))
+    assert out == {"version": PROTOCOL_VERSION, "type": "error", "error": "SceneError", "code": "unknown_scene",
+                   "message": "no such scene"}
+    err = RemoteError.from_reply("w1", out)
+    assert err.code == ErrorCode.UNKNOWN_SCENE and err.error_type == "SceneError" and err.message == "no such scene"
+    assert RemoteError.from_reply("w1", {"error": "X", "code": "from_the_future", "message": ""}).code == "internal"
+    with pytest.raises(ValueError, match="not_a_code"):
+        error_message("SceneError", "not_a_code", "x")
+
+
+@pytest.mark.parametrize("version", [True, 1.0, "1", None, 2])
+def test_only_the_exact_int_version_is_accepted(version):
+    with pytest.raises(ProtocolError, match="protocol version"):
+        decode(_raw({"version": version, "type": "health"}, tail=b""))
 
 
 def test_encode_rejects_what_cannot_travel():

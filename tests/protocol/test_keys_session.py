@@ -18,9 +18,9 @@ def test_keys_are_namespaced_by_run_and_worker():
     assert keys.worker_id_from_alive_key(keys.worker_alive("r", "w9")) == "w9"
 
 
-@pytest.mark.parametrize("bad", ["", "a/b", "*", "**", "a b", "x?y", "a#b", "$*", None])
+@pytest.mark.parametrize("bad", ["", "a/b", "*", "**", "a b", "x?y", "a#b", "$*", None, "r1\n", "\nr1", "r" * 257])
 def test_keys_refuse_unsafe_chunks(bad):
-    with pytest.raises(ConfigError, match="must be a non-empty string of letters"):
+    with pytest.raises(ConfigError, match="must be a non-empty string of at most 256 letters"):
         keys.worker_rpc("run", bad)
     with pytest.raises(ConfigError, match="run_id="):
         keys.worker_alive(bad, "w")

@@ -21,7 +21,7 @@ from visfly_dist.protocol.codec import MAGIC, PROTOCOL_VERSION, encode
 from visfly_dist.protocol.messages import (
     Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene, split_step_result,
 )
-from visfly_dist.scene_worker import shm
+from visfly_dist.protocol import shm
 from visfly_dist.scene_worker.queries import ObstacleQueries
 from visfly_dist.scene_worker.render_base import make_renderer
 from visfly_dist.scenes import resolve_source
@@ -185,7 +185,8 @@ def test_several_scenes_in_one_step_and_reload_and_unload(worker):
 
     assert call(session, proc.rpc_key, UnloadScene("s1").to_message()) == (True, {"version": PROTOCOL_VERSION, "type": "ok"})
     ok, err = _step(proc, session, poses, key="s1")
-    assert not ok and err["error"] == "SceneError" and "'s1' is not loaded" in err["message"]
+    assert not ok and err["error"] == "SceneError" and err["code"] == "unknown_scene"
+    assert "'s1' is not loaded" in err["message"]
     ok, health = call(session, proc.rpc_key, Health().to_message())
     assert health["scenes"] == ["s0"]
 
@@ -229,6 +230,10 @@ MALFORMED = {
     "unload unknown": (UnloadScene("nope").to_message(), "SceneError", "'nope' is not loaded"),
     "impossible spawn": (SampleSpawn("s0", 5, 50.0, "uniform", (0, 0, 0), (1, 1, 1)).to_message(), "SceneError", "clearance"),
 }
+UNKNOWN_SCENE_CASES = {"unknown scene in step", "unknown scene in spawn", "unload unknown"}
+CODES = {name: "unknown_scene" if name in UNKNOWN_SCENE_CASES
+         else {"ProtocolError": "bad_request", "SceneError": "scene_error"}[error_type]
+         for name, (_, error_type, _) in MALFORMED.items()}
 
 
 @pytest.mark.parametrize("name", list(MALFORMED))
@@ -237,7 +242,7 @@ def test_bad_request_gets_an_error_reply_and_the_worker_keeps_serving(worker, na
     message, error_type, match = MALFORMED[name]
     ok, err = call(session, proc.rpc_key, message if isinstance(message, bytes) else encode(message))
     assert not ok
-    assert err["type"] == "error" and err["error"] == error_type, err
+    assert err["type"] == "error" and err["error"] == error_type and err["code"] == CODES[name], err
     assert re.search(match, err["message"]), err["message"]
     ok, reply = _step(proc, session, _poses_at_origin(2))
     assert ok and split_step_result(reply)[0]["images"]["depth"].shape == (2, 1, 48, 64)

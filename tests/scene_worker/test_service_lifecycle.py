@@ -17,7 +17,7 @@ from visfly_dist.protocol import keys
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, LoadScene, ScenePoses, StepRequest
 from visfly_dist.protocol.session import SessionConfig, open_session
-from visfly_dist.scene_worker import shm
+from visfly_dist.protocol import shm
 
 pytestmark = pytest.mark.worker
 

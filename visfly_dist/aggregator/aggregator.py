@@ -41,7 +41,7 @@ from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.slots import Move, SlotTable
-from visfly_dist.errors import ConfigError, NoWorkersError, RemoteError
+from visfly_dist.errors import ConfigError, ErrorCode, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, UnloadScene, step_message
 
@@ -55,8 +55,7 @@ __all__ = ["Aggregator", "Observation", "StepTicket"]
 
 def is_unknown_scene(err: RemoteError) -> bool:
     """The worker does not hold a scene key we sent: it restarted since the scene was loaded."""
-    return getattr(err, "code", None) == "unknown_scene" or (
-        err.error_type == "SceneError" and "is not loaded on this worker" in err.message)
+    return err.code == ErrorCode.UNKNOWN_SCENE
 
 
 @dataclass

@@ -39,6 +39,7 @@ from visfly_dist.errors import NoWorkersError, ProtocolError, RemoteError
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
 from visfly_dist.protocol.session import SessionConfig, open_session
+from visfly_dist.protocol.shm import release_segments
 
 log = logging.getLogger(__name__)
 
@@ -167,6 +168,7 @@ class WorkerPool:
         if self._session is not None:
             self._session.close()
             self._session = None
+            release_segments()  # our shared-memory segment files, once no session of ours is open
         if self._log_dir is not None:
             shutil.rmtree(self._log_dir, ignore_errors=True)
             self._log_dir = None
@@ -353,5 +355,5 @@ class WorkerPool:
         except ProtocolError as exc:
             raise ProtocolError(f"worker {wid!r} sent an invalid {'reply' if ok else 'error reply'}: {exc}") from None
         if not ok or message.get("type") == "error":
-            return Reply(wid, error=RemoteError(wid, str(message.get("error", "Error")), str(message.get("message", ""))))
+            return Reply(wid, error=RemoteError.from_reply(wid, message))
         return Reply(wid, message=message)

@@ -56,25 +56,25 @@ class CameraSpec:
         object.__setattr__(self, "offset", tuple(float(c) for c in self.offset))
 
     def problems(self) -> list[str]:
-        """Every problem with this spec, as messages (empty when valid)."""
+        """Every problem with this spec, as messages (empty when valid). Types are strict: a bool is
+        not a number, a string is not a vector."""
         out: list[str] = []
         if not isinstance(self.name, str) or not self.name or "/" in self.name:
             out.append(f"name={self.name!r} must be a non-empty string without '/'")
-        if self.kind not in SENSOR_KINDS:
+        if not isinstance(self.kind, str) or self.kind not in SENSOR_KINDS:
             out.append(f"kind={self.kind!r} must be one of {SENSOR_KINDS}")
         for attr in ("width", "height"):
             v = getattr(self, attr)
-            if not isinstance(v, (int, np.integer)) or not 1 <= int(v) <= MAX_RESOLUTION:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= int(v) <= MAX_RESOLUTION:
                 out.append(f"{attr}={v!r} must be an int in [1, {MAX_RESOLUTION}]")
-        if not (isinstance(self.hfov_deg, (int, float)) and 1.0 <= float(self.hfov_deg) <= 170.0):
-            out.append(f"hfov_deg={self.hfov_deg!r} must be in [1, 170]")
-        if len(tuple(self.offset)) != 3 or not all(math.isfinite(float(c)) for c in self.offset):
+        if not (_is_number(self.hfov_deg) and 1.0 <= float(self.hfov_deg) <= 170.0):
+            out.append(f"hfov_deg={self.hfov_deg!r} must be a number in [1, 170]")
+        if not _is_vector(self.offset, 3):
             out.append(f"offset={self.offset!r} must be 3 finite numbers")
-        rot = tuple(self.rotation)
-        if len(rot) != 4 or not all(math.isfinite(float(c)) for c in rot) or sum(float(c) ** 2 for c in rot) < 1e-12:
-            out.append(f"rotation={self.rotation!r} must be a non-zero quaternion wxyz")
-        if not (0 < float(self.near) < float(self.far) <= 1e4):
-            out.append(f"near={self.near!r}, far={self.far!r} must satisfy 0 < near < far <= 1e4")
+        if not _is_vector(self.rotation, 4) or sum(float(c) ** 2 for c in self.rotation) < 1e-12:
+            out.append(f"rotation={self.rotation!r} must be a non-zero quaternion wxyz (4 finite numbers)")
+        if not (_is_number(self.near) and _is_number(self.far) and 0 < float(self.near) < float(self.far) <= 1e4):
+            out.append(f"near={self.near!r}, far={self.far!r} must be numbers with 0 < near < far <= 1e4")
         return out
 
     @property
@@ -116,12 +116,25 @@ class CameraSpec:
             raise ConfigError(f"camera spec has unknown keys {sorted(unknown)}; accepted: {sorted(allowed)}")
         kw = dict(d)
         for key in ("offset", "rotation"):
-            if key in kw:
+            if isinstance(kw.get(key), list):
                 kw[key] = tuple(kw[key])
         try:
             return cls(**kw)
         except TypeError as exc:
             raise ConfigError(f"camera spec {d!r}: {exc}") from exc
+
+
+def _is_number(value: Any) -> bool:
+    """A finite real number that is not a bool."""
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+            and math.isfinite(float(value)))
+
+
+def _is_vector(value: Any, length: int) -> bool:
+    """A tuple, list or 1-d array of ``length`` finite numbers."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist() if value.ndim == 1 else None
+    return isinstance(value, (tuple, list)) and len(value) == length and all(_is_number(v) for v in value)
 
 
 DEFAULT_DEPTH_CAMERA = CameraSpec()

@@ -18,7 +18,7 @@ import struct
 import msgpack
 import numpy as np
 
-from visfly_dist.errors import ProtocolError
+from visfly_dist.errors import ErrorCode, ProtocolError
 
 PROTOCOL_VERSION = 1
 MAX_MESSAGE_BYTES = 512 * 1024 * 1024
@@ -119,13 +119,14 @@ def decode(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     if not isinstance(msg, dict):
         raise ProtocolError(f"a message must be a map, got {type(msg).__name__}")
     version = msg.get("version")
-    if version != PROTOCOL_VERSION:
+    if type(version) is not int or version != PROTOCOL_VERSION:  # True == 1 and 1.0 == 1 are refused
         raise ProtocolError(f"protocol version {version!r} not supported; this side speaks {PROTOCOL_VERSION}")
     if not isinstance(msg.get("type"), str):
         raise ProtocolError("message has no string 'type'")
     return msg
 
 
-def error_message(error_type: str, message: str) -> bytes:
-    """An encoded error reply (sent with ``reply_err``)."""
-    return encode({"type": "error", "error": error_type, "message": message})
+def error_message(error_type: str, code: ErrorCode, message: str) -> bytes:
+    """An encoded error reply (sent with ``reply_err``): ``{"type": "error", "error": error_type,
+    "code": code, "message": message}``; ``code`` is one of :class:`~visfly_dist.errors.ErrorCode`."""
+    return encode({"type": "error", "error": error_type, "code": ErrorCode(code).value, "message": message})

@@ -10,13 +10,20 @@ import re
 from visfly_dist.errors import ConfigError
 
 ROOT = "visfly"
-_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+MAX_CHUNK_CHARS = 256
+_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
 
 
 def check_chunk(value: str, what: str) -> str:
-    """Return ``value`` if it is a safe single key-expression chunk, else raise ConfigError."""
-    if not isinstance(value, str) or not _CHUNK.match(value):
-        raise ConfigError(f"{what}={value!r} must be a non-empty string of letters, digits, '_', '.', '-'")
+    """Return ``value`` if it is a safe single key-expression chunk, else raise ConfigError.
+
+    The whole string must match (a trailing newline is refused) and hold at most
+    :data:`MAX_CHUNK_CHARS` characters.
+    """
+    if not isinstance(value, str) or len(value) > MAX_CHUNK_CHARS or not _CHUNK.fullmatch(value):
+        shown = value if not isinstance(value, str) or len(value) <= 80 else value[:80] + "..."
+        raise ConfigError(f"{what}={shown!r} must be a non-empty string of at most {MAX_CHUNK_CHARS} letters, "
+                          "digits, '_', '.', '-'")
     return value
 
 

@@ -157,18 +157,35 @@ REQUEST_TYPES = ("load_scene", "unload_scene", "step", "sample_spawn", "health")
 Request = LoadScene | UnloadScene | StepRequest | SampleSpawn | Health
 
 
+REQUEST_FIELDS: dict[str, frozenset[str]] = {
+    "health": frozenset(),
+    "unload_scene": frozenset({"scene_key"}),
+    "load_scene": frozenset({"scene_key", "source", "cameras", "drone_radius", "multi_agent"}),
+    "sample_spawn": frozenset({"scene_key", "n", "clearance", "distribution", "a", "b", "seed"}),
+    "step": frozenset({"keys", "counts", "poses", "render", "query", "search_radius"}),
+}
+"""The fields each request type may carry besides ``version`` and ``type``; others are refused."""
+MAX_SEED = 2**63 - 1
+
+
 def _get(msg: Mapping[str, Any], key: str, kind: type | tuple[type, ...], what: str) -> Any:
     if key not in msg:
         raise ProtocolError(f"{what}: missing field {key!r}")
     value = msg[key]
-    if isinstance(value, bool) and kind in (int, float, (int, float)):
-        raise ProtocolError(f"{what}: field {key!r} must be a number, got bool")
-    if not isinstance(value, kind):
-        raise ProtocolError(f"{what}: field {key!r} must be {getattr(kind, '__name__', kind)}, got {type(value).__name__}")
+    expected = "a number" if kind == (int, float) else kind.__name__  # type: ignore[union-attr]
+    if (isinstance(value, bool) and kind is not bool) or not isinstance(value, kind):
+        raise ProtocolError(f"{what}: field {key!r} must be {expected}, got {type(value).__name__}")
     return value
 
 
+def _flag(msg: Mapping[str, Any], key: str, what: str) -> bool:
+    """An optional boolean field (default True); anything but a bool is refused."""
+    return _get(msg, key, bool, what) if key in msg else True
+
+
 def _finite(value: Any, what: str, lo: float, hi: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ProtocolError(f"{what}={value!r} must be a number, got {type(value).__name__}")
     v = float(value)
     if not math.isfinite(v) or not lo <= v <= hi:
         raise ProtocolError(f"{what}={value!r} must be finite and in [{lo}, {hi}]")
@@ -182,10 +199,17 @@ def _key(msg: Mapping[str, Any], what: str) -> str:
         raise ProtocolError(f"{what}: {exc}") from None
 
 
-def _vec3(value: Any, what: str) -> tuple[float, float, float]:
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise ProtocolError(f"{what} must be a list of 3 numbers, got {value!r}")
-    return tuple(_finite(v, what, -1e6, 1e6) for v in value)  # type: ignore[return-value]
+def _vec3(msg: Mapping[str, Any], key: str, what: str) -> tuple[float, float, float]:
+    value = _get(msg, key, list, what)
+    if len(value) != 3:
+        raise ProtocolError(f"{what}: {key} must be a list of 3 numbers, got {len(value)} items")
+    return tuple(_finite(v, f"{what}.{key}", -1e6, 1e6) for v in value)  # type: ignore[return-value]
+
+
+def _no_extra(msg: Mapping[str, Any], allowed: frozenset[str], what: str) -> None:
+    extra = set(msg) - allowed
+    if extra:
+        raise ProtocolError(f"{what}: unknown field(s) {sorted(map(str, extra))}; accepted: {sorted(allowed)}")
 
 
 def _poses(value: Any, what: str) -> np.ndarray:
@@ -208,11 +232,15 @@ def _poses(value: Any, what: str) -> np.ndarray:
 
 
 def parse_request(msg: Mapping[str, Any]) -> Request:
-    """Validate a decoded message and return the typed request; ProtocolError otherwise."""
+    """Validate a decoded message and return the typed request; ProtocolError otherwise.
+
+    Strict: numbers are never bools, flags are only bools, unknown fields are refused.
+    """
     kind = msg.get("type")
-    if kind not in REQUEST_TYPES:
+    if not isinstance(kind, str) or kind not in REQUEST_TYPES:
         raise ProtocolError(f"unknown message type {kind!r}; valid types: {', '.join(REQUEST_TYPES)}")
-    what = str(kind)
+    what = kind
+    _no_extra(msg, REQUEST_FIELDS[kind] | {"version", "type"}, what)
     if kind == "health":
         return Health()
     if kind == "unload_scene":
@@ -222,8 +250,8 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
         if not source or len(source) > MAX_SOURCE_CHARS or "\x00" in source:
             raise ProtocolError(f"{what}: source must be a non-empty string under {MAX_SOURCE_CHARS} chars")
         cams = _get(msg, "cameras", list, what)
-        if len(cams) > MAX_CAMERAS:
-            raise ProtocolError(f"{what}: {len(cams)} cameras exceed the bound {MAX_CAMERAS}")
+        if not 1 <= len(cams) <= MAX_CAMERAS:
+            raise ProtocolError(f"{what}: {len(cams)} cameras must be between 1 and the bound {MAX_CAMERAS}")
         try:
             cameras = tuple(CameraSpec.from_dict(c) for c in cams)
         except ConfigError as exc:
@@ -241,12 +269,14 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
         dist = _get(msg, "distribution", str, what)
         if dist not in ("uniform", "normal"):
             raise ProtocolError(f"{what}: distribution={dist!r} must be 'uniform' or 'normal'")
-        a, b = _vec3(msg.get("a"), "a"), _vec3(msg.get("b"), "b")
+        a, b = _vec3(msg, "a", what), _vec3(msg, "b", what)
         if dist == "uniform" and any(lo > hi for lo, hi in zip(a, b)):
             raise ProtocolError(f"{what}: uniform low {a} must not exceed high {b}")
         if dist == "normal" and any(s < 0 for s in b):
             raise ProtocolError(f"{what}: normal std {b} must be non-negative")
         seed = _get(msg, "seed", int, what)
+        if not 0 <= seed <= MAX_SEED:
+            raise ProtocolError(f"{what}: seed={seed} must be in [0, 2**63 - 1]")
         clearance = _finite(_get(msg, "clearance", (int, float), what), "clearance", 0.0, 100.0)
         return SampleSpawn(_key(msg, what), n, clearance, dist, a, b, seed)
     # step
@@ -266,4 +296,4 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
     ends = np.cumsum(counts)
     parsed = tuple(ScenePoses(key, poses[end - n:end]) for key, n, end in zip(keys, counts.tolist(), ends.tolist()))
     radius = _finite(_get(msg, "search_radius", (int, float), what), "search_radius", 0.0, 1e4)
-    return StepRequest(parsed, _get(msg, "render", bool, what), _get(msg, "query", bool, what), radius)
+    return StepRequest(parsed, _flag(msg, "render", what), _flag(msg, "query", what), radius)

@@ -73,8 +73,10 @@ def open_session(config: SessionConfig):
     """Open a Zenoh session; wraps connection failures in a ConfigError that names the endpoints."""
     import zenoh
 
+    from visfly_dist.protocol import shm
+
     try:
-        return zenoh.open(config.to_zenoh())
+        return shm.track(zenoh.open(config.to_zenoh()))
     except Exception as exc:  # zenoh raises ZError
         raise ConfigError(
             f"could not open a Zenoh {config.mode} session (connect={list(config.connect)}, "

@@ -18,6 +18,7 @@ import signal
 import sys
 
 from visfly_dist.errors import ConfigError
+from visfly_dist.scene_worker.limits import WorkerLimits
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(?P<port>\d{1,5})([?#].*)?$")
 
@@ -40,6 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="link lease: a hung worker is declared dead after about this long")
     parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",
                         help="exit when this process is gone (local pools)")
+    limits = parser.add_argument_group("bounds (a request beyond them gets an error reply)")
+    limits.add_argument("--max-scenes", type=int, default=WorkerLimits.max_scenes, metavar="N",
+                        help="scenes loaded or loading at once (default %(default)s)")
+    limits.add_argument("--max-key-chars", type=int, default=WorkerLimits.max_key_chars, metavar="N",
+                        help="length of a scene key (default %(default)s, at most 256)")
+    limits.add_argument("--max-pixels", type=int, default=WorkerLimits.max_pixels, metavar="N",
+                        help="agents x cameras x pixels one step may render (default %(default)s)")
     parser.set_defaults(func=run)
 
 
@@ -86,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise ConfigError(f"--scene-root {missing} are not existing directories")
     config = session_config(args)
+    limits = WorkerLimits(max_scenes=args.max_scenes, max_key_chars=args.max_key_chars, max_pixels=args.max_pixels)
     if args.parent_pid is not None and args.parent_pid <= 0:
         raise ConfigError(f"--parent-pid {args.parent_pid} must be a positive process id")
     if "torch" in sys.modules:  # never import it here; only tame it if something else did
@@ -94,9 +103,9 @@ def run(args: argparse.Namespace) -> int:
                         format="%(asctime)s worker %(process)d %(levelname)s %(message)s")
 
     from visfly_dist.scene_worker.service import SceneWorker
-    from visfly_dist.scene_worker.shm import remove_own_segments
+    from visfly_dist.protocol.shm import release_segments
 
-    worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id)
+    worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id, limits=limits)
     original_ppid = os.getppid()
     should_stop = None
     if args.parent_pid is not None:
@@ -110,5 +119,5 @@ def run(args: argparse.Namespace) -> int:
         worker.serve(should_stop=should_stop)
     finally:
         worker.close()
-    remove_own_segments()
+    release_segments()
     return 0

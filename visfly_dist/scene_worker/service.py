@@ -1,15 +1,21 @@
 """The scene worker's Zenoh service: one queryable answering the protocol's requests.
 
-Threading: Zenoh calls the queryable's callback on its own thread (one per entity). The callback
-only queues the query; the thread that called :meth:`SceneWorker.serve` takes queries off the queue
-and does all the work (decode, render, FCL, encode, reply) one request at a time. Rendering and
-geometry hold the GIL and the GL context anyway, so serial work on one known thread costs nothing
-and keeps the GL context on the thread that created it. A queued query is replied to (or its error
-sent) and then dropped explicitly, which is what tells the querier that the answer is complete.
+Threading. Zenoh calls the queryable's callback on its own thread; the callback only queues the
+query. The *serving thread* (the one that called :meth:`SceneWorker.serve`) takes items off that
+inbox and does all the request work (decode, render, FCL, encode, reply) one at a time, so GL
+contexts stay on the thread that made them. The one exception is the CPU-heavy half of a
+``load_scene`` (mesh loading or generation, BVH builds): it runs on a single loader thread, so a
+load never blocks health checks or other scenes' steps. When it ends, the loader puts the result in
+the same inbox; the serving thread finishes the load (an EGL renderer is built there), installs the
+scene and replies. Until then a step on that key gets ``SceneError`` with code ``scene_loading``; a
+key being re-loaded keeps serving its old scene. A reply (or error) is sent exactly once per query,
+and the query is then dropped explicitly, which tells the querier that the answer is complete.
 
-Every failure of a request becomes an error reply (``codec.error_message``) whose type is the
-exception's class name (``ProtocolError``, ``SceneError``, ``ConfigError``), or ``InternalError`` for
-anything unexpected, which is also logged with its traceback: the worker never dies of a request.
+Every failure of a request becomes an error reply (``codec.error_message``) with the exception's
+class name (``ProtocolError``, ``SceneError``) and its :class:`~visfly_dist.errors.ErrorCode`, or
+``InternalError`` / ``internal`` for anything unexpected, which is also logged with its
+traceback: the worker never dies of a request. Bounds (:class:`WorkerLimits`) turn requests that
+would exhaust the worker into error replies.
 """
 
 from __future__ import annotations
@@ -19,12 +25,14 @@ import os
 import queue
 import socket
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from visfly_dist.errors import ConfigError, ProtocolError, VisflyError
+from visfly_dist.errors import ConfigError, ErrorCode, ProtocolError, SceneError, VisflyError
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode, error_message
 from visfly_dist.protocol.messages import (
@@ -32,17 +40,34 @@ from visfly_dist.protocol.messages import (
 )
 from visfly_dist.protocol.session import SessionConfig, open_session
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES
-from visfly_dist.scene_worker.state import LoadedScene, SceneTable, build_scene
+from visfly_dist.scene_worker.limits import WorkerLimits
+from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
 from visfly_dist.scene_worker.timing import StageTimer
 from visfly_dist.scenes import sample_free_positions
 
 log = logging.getLogger(__name__)
 
+Respond = Callable[[bool, bytes], None]
+"""Sends one answer: ``(True, reply)`` or ``(False, error reply)``."""
+
+DUPLICATE_CHECK_S = 1.0
+"""How long a liveliness get for this worker's own id may take at start."""
+
 
 def default_worker_id() -> str:
     """``<host>-<pid>``, with characters a key expression cannot hold replaced by ``-``."""
     host = "".join(c if c.isalnum() or c in "_.-" else "-" for c in socket.gethostname()) or "host"
-    return f"{host}-{os.getpid()}"
+    return f"{host}-{os.getpid()}"[-keys.MAX_CHUNK_CHARS:]
+
+
+@dataclass(eq=False)
+class _LoadJob:
+    """A ``load_scene`` in progress: who to answer, and since when."""
+
+    request: LoadScene
+    respond: Respond
+    start: float
+    future: Future | None = field(default=None, repr=False)
 
 
 class SceneWorker:
@@ -59,11 +84,12 @@ class SceneWorker:
         scene_roots: directories scene files may be loaded from (at least one).
         backend: ``auto``, ``egl`` or ``raycast``; ``auto`` chooses per scene from its cameras.
         worker_id: this worker's id in the run; default ``<host>-<pid>``.
+        limits: what one request and the whole worker may ask for.
     """
 
     def __init__(
         self, run_id: str, session: SessionConfig, scene_roots: Sequence[str | os.PathLike],
-        backend: str = "auto", worker_id: str | None = None,
+        backend: str = "auto", worker_id: str | None = None, limits: WorkerLimits | None = None,
     ) -> None:
         if backend not in BACKEND_CHOICES:
             raise ConfigError(f"backend={backend!r} must be one of {BACKEND_CHOICES}")
@@ -80,10 +106,13 @@ class SceneWorker:
         self.backend = backend
         self.scene_roots = roots
         self.session_config = session
+        self.limits = limits or WorkerLimits()
         self._scenes = SceneTable()
         self._timer = StageTimer()
         self._last_encode_s = 0.0
-        self._queries: queue.SimpleQueue = queue.SimpleQueue()
+        # The inbox holds Zenoh queries (from Zenoh's thread) and finished loads (from the loader).
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._loader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scene-loader")
         self._stopping = False
         self._started = time.monotonic()
         self._session: Any = None
@@ -93,18 +122,42 @@ class SceneWorker:
     # -- lifecycle -------------------------------------------------------------------------------
 
     def start(self) -> "SceneWorker":
-        """Open the session, declare the queryable, then the liveliness token (in that order:
-        a get sent the moment the token is seen must find the queryable already there)."""
+        """Open the session, refuse a duplicate id, declare the queryable, then the liveliness token
+        (in that order: a get sent the moment the token is seen must find the queryable already there).
+
+        Raises:
+            ConfigError: the session cannot open, or another live worker of the run holds this id.
+        """
         assert self._session is None, "start() called twice"
         self._session = open_session(self.session_config)
         try:
-            self._queryable = self._session.declare_queryable(self.rpc_key, self._queries.put)
+            self._refuse_duplicate_id()
+            self._queryable = self._session.declare_queryable(self.rpc_key, self._inbox.put)
             self._token = self._session.liveliness().declare_token(self.alive_key)
         except BaseException:
             self.close()
             raise
         self._started = time.monotonic()
         return self
+
+    def _refuse_duplicate_id(self) -> None:
+        """ConfigError if a live worker of this run, reachable now, already holds this worker id.
+
+        A token still seen is looked at again for one lease: a predecessor that was just killed
+        or hung loses its token within that time, a worker that is alive does not. Two workers
+        starting at the same instant can both pass; the check is for the common mistake.
+        """
+        deadline = time.monotonic() + self.session_config.lease_ms / 1000.0 + 0.5
+        while True:
+            replies = self._session.liveliness().get(self.alive_key, timeout=DUPLICATE_CHECK_S)
+            if not any(r.ok is not None for r in replies):
+                return
+            if time.monotonic() >= deadline:
+                raise ConfigError(
+                    f"worker id {self.worker_id!r} is already alive in run {self.run_id!r} (its liveliness token "
+                    f"{self.alive_key} exists): give each worker a unique --worker-id, or stop the other one first"
+                )
+            time.sleep(0.2)
 
     def serve(self, should_stop: Callable[[], bool] | None = None, poll_s: float = 0.2) -> None:
         """Answer requests until :meth:`stop` is called or ``should_stop()`` returns True.
@@ -113,18 +166,26 @@ class SceneWorker:
         """
         assert self._session is not None, "call start() before serve()"
         while not self._stopping and not (should_stop is not None and should_stop()):
-            try:
-                query = self._queries.get(timeout=poll_s)
-            except queue.Empty:
-                continue
-            self._answer(query)
+            self._serve_one(poll_s)
+
+    def _serve_one(self, timeout_s: float) -> None:
+        """Take one item off the inbox (waiting up to ``timeout_s``) and deal with it."""
+        try:
+            item = self._inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            return
+        if isinstance(item, _LoadJob):
+            self._finish_load(item)
+        else:
+            self._answer(item)
 
     def stop(self) -> None:
         """Ask :meth:`serve` to return. Safe from signal handlers and other threads."""
         self._stopping = True
 
     def close(self) -> None:
-        """Withdraw the token and queryable, refuse queued requests, close renderers and session.
+        """Withdraw the token and queryable, refuse queued requests and loads in progress, close
+        renderers and session.
 
         Idempotent. The token goes first so observers stop routing work here at once.
         """
@@ -136,12 +197,21 @@ class SceneWorker:
                 except Exception:  # the session may already be gone
                     log.debug("undeclare failed", exc_info=True)
         self._token = self._queryable = None
+        self._loader.shutdown(wait=False, cancel_futures=True)
+        shutting_down = error_message("WorkerShutdown", ErrorCode.SHUTTING_DOWN,
+                                      f"worker {self.worker_id!r} is shutting down")
+        for job in self._scenes.pop_loading():
+            job.respond(False, shutting_down)
         while True:
             try:
-                query = self._queries.get_nowait()
+                item = self._inbox.get_nowait()
             except queue.Empty:
                 break
-            self._send(query, False, error_message("WorkerShutdown", f"worker {self.worker_id!r} is shutting down"))
+            if isinstance(item, _LoadJob):  # already answered above; free what it built
+                if item.future is not None and item.future.done() and item.future.exception() is None:
+                    item.future.result().discard()
+            else:
+                self._send(item, False, shutting_down)
         self._scenes.close()
         if self._session is not None:
             self._session.close()
@@ -157,7 +227,9 @@ class SceneWorker:
 
     def _answer(self, query: Any) -> None:
         payload = query.payload.to_bytes() if query.payload is not None else b""
-        ok, body = self.handle(payload)
+        self.submit(payload, lambda ok, body: self._reply(query, ok, body))
+
+    def _reply(self, query: Any, ok: bool, body: bytes) -> None:
         with self._timer.time("reply"):
             self._send(query, ok, body)
 
@@ -172,16 +244,21 @@ class SceneWorker:
         finally:
             query.drop()
 
-    def handle(self, payload: bytes) -> tuple[bool, bytes]:
-        """Answer one encoded request: ``(True, reply)`` or ``(False, error reply)``.
+    def submit(self, payload: bytes, respond: Respond) -> None:
+        """Answer one encoded request by calling ``respond(ok, body)`` exactly once.
 
-        Transport-independent, so it can be exercised in-process. Never raises.
+        Transport-independent. Call it on the serving thread. Every request but ``load_scene`` is
+        answered before this returns; a load is answered from :meth:`serve` (or :meth:`handle`)
+        once its background half has finished. Never raises.
         """
         start = time.perf_counter()
         timings: dict[str, float] = {}
         try:
             with self._timer.time("decode", timings):
                 request = parse_request(decode(payload))
+            if isinstance(request, LoadScene):
+                self._start_load(request, respond, start)
+                return
             reply = self._dispatch(request, timings)
             if request.type == "step":
                 timings["encode_s"] = self._last_encode_s
@@ -192,41 +269,108 @@ class SceneWorker:
             self._last_encode_s = time.perf_counter() - t0
             self._timer.add("encode", self._last_encode_s)
             self._timer.add(request.type, time.perf_counter() - start)
-            return True, body
-        except VisflyError as exc:
-            return False, error_message(type(exc).__name__, str(exc))
         except Exception as exc:
-            log.exception("unexpected failure while serving a request")
-            return False, error_message("InternalError", f"{type(exc).__name__}: {exc}")
+            respond(False, self._error_reply(exc))
+            return
+        respond(True, body)
+
+    def handle(self, payload: bytes, timeout_s: float = 120.0) -> tuple[bool, bytes]:
+        """Answer one encoded request in-process and wait for it (loads included).
+
+        For tests and tools without a transport; use it on one thread, not beside :meth:`serve`.
+
+        Returns:
+            ``(True, reply)`` or ``(False, error reply)``.
+        """
+        answers: list[tuple[bool, bytes]] = []
+        self.submit(payload, lambda ok, body: answers.append((ok, body)))
+        deadline = time.monotonic() + timeout_s
+        while not answers:
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"no answer within {timeout_s} s")
+            self._serve_one(0.05)
+        return answers[0]
+
+    def _error_reply(self, exc: Exception) -> bytes:
+        if isinstance(exc, VisflyError):
+            return error_message(type(exc).__name__, exc.code, str(exc))
+        log.error("unexpected failure while serving a request", exc_info=exc)
+        return error_message("InternalError", ErrorCode.INTERNAL, f"{type(exc).__name__}: {exc}")
 
     def _dispatch(self, request: Request, timings: dict[str, float]) -> dict[str, Any]:
         if isinstance(request, StepRequest):
             return self._step(request, timings)
-        if isinstance(request, LoadScene):
-            return self._load(request)
         if isinstance(request, SampleSpawn):
             return self._sample_spawn(request)
         if isinstance(request, UnloadScene):
-            self._scenes.remove(request.scene_key)
-            log.info("unloaded scene %r", request.scene_key)
-            return {"type": "ok"}
+            return self._unload(request)
         assert isinstance(request, Health), request
         return self.health()
 
-    def _load(self, request: LoadScene) -> dict[str, Any]:
-        loaded = build_scene(request, self.scene_roots, self.backend)
-        self._scenes.put(loaded)
-        scene = loaded.scene
-        log.info("loaded scene %r from %r: %d triangles, backend %s",
-                 request.scene_key, request.source, scene.num_triangles, loaded.renderer.name)
-        return {"type": "scene_loaded", "scene_key": request.scene_key, "bounds": scene.bounds,
-                "num_triangles": scene.num_triangles, "num_objects": len(scene.objects),
-                "backend": loaded.renderer.name, "metadata": scene.metadata}
+    # -- loads -----------------------------------------------------------------------------------
+
+    def _start_load(self, request: LoadScene, respond: Respond, start: float) -> None:
+        """Check the bounds, mark the key as loading and hand the heavy half to the loader thread."""
+        key = request.scene_key
+        if len(key) > self.limits.max_key_chars:
+            raise ProtocolError(f"scene_key of {len(key)} chars exceeds this worker's bound of "
+                                f"{self.limits.max_key_chars} (--max-key-chars)", code=ErrorCode.TOO_LARGE)
+        if self._scenes.is_loading(key):
+            raise SceneError(f"scene_key {key!r} is already loading on this worker; wait for its load reply",
+                             code=ErrorCode.SCENE_LOADING)
+        if key not in self._scenes and len(self._scenes) >= self.limits.max_scenes:
+            raise SceneError(f"this worker holds {len(self._scenes)} scenes, its bound (--max-scenes); "
+                             "unload one or load on another worker", code=ErrorCode.OVERLOADED)
+        job = _LoadJob(request, respond, start)
+        self._scenes.begin_load(key, job)
+        job.future = self._loader.submit(prepare_scene, request, self.scene_roots, self.backend)
+        job.future.add_done_callback(lambda _: self._inbox.put(job))  # runs on the loader thread
+
+    def _finish_load(self, job: _LoadJob) -> None:
+        """On the serving thread: install the prepared scene and answer the load."""
+        request = job.request
+        assert job.future is not None and job.future.done()
+        if not self._scenes.end_load(request.scene_key, job):  # unloaded while loading
+            if job.future.exception() is None:
+                job.future.result().discard()
+            return
+        prepared: PreparedScene | None = None
+        try:
+            prepared = job.future.result()
+            loaded = assemble_scene(prepared, self.backend)
+            prepared = None
+            self._scenes.put(loaded)
+            scene = loaded.scene
+            log.info("loaded scene %r from %r: %d triangles, backend %s",
+                     request.scene_key, request.source, scene.num_triangles, loaded.renderer.name)
+            body = encode({"type": "scene_loaded", "scene_key": request.scene_key, "bounds": scene.bounds,
+                           "num_triangles": scene.num_triangles, "num_objects": len(scene.objects),
+                           "backend": loaded.renderer.name, "metadata": scene.metadata})
+        except Exception as exc:
+            if prepared is not None:
+                prepared.discard()
+            job.respond(False, self._error_reply(exc))
+            return
+        self._timer.add("load_scene", time.perf_counter() - job.start)
+        job.respond(True, body)
+
+    def _unload(self, request: UnloadScene) -> dict[str, Any]:
+        dropped = self._scenes.remove(request.scene_key)
+        if dropped is not None:
+            dropped.respond(False, error_message(
+                "SceneError", ErrorCode.UNKNOWN_SCENE,
+                f"load of scene_key {request.scene_key!r} was cancelled by unload_scene"))
+        log.info("unloaded scene %r", request.scene_key)
+        return {"type": "ok"}
+
+    # -- steps -----------------------------------------------------------------------------------
 
     def _step(self, request: StepRequest, timings: dict[str, float]) -> dict[str, Any]:
         """Every entry rendered and queried; the reply's arrays hold all entries' rows in order."""
-        # Resolve every key before any work, so a bad key costs nothing.
+        # Resolve every key and check the bounds before any work, so a bad request costs nothing.
         loaded = [self._scenes.get(s.scene_key) for s in request.scenes]
+        if request.render:
+            self._check_pixels(request, loaded)
         counts = np.array([len(s.poses) for s in request.scenes], dtype=np.int32)
         reply: dict[str, Any] = {"type": "step_result", "counts": counts, "images": {}}
         timings.setdefault("render_s", 0.0)
@@ -246,6 +390,13 @@ class SceneWorker:
                     reply[key] = _concat([p[key] for p in parts], shape, dtype)
         return reply
 
+    def _check_pixels(self, request: StepRequest, loaded: Sequence[LoadedScene]) -> None:
+        pixels = sum(len(item.poses) * scene.pixels_per_agent for item, scene in zip(request.scenes, loaded))
+        if pixels > self.limits.max_pixels:
+            raise ProtocolError(f"step asks for {pixels} pixels (agents x cameras x pixels), over this worker's "
+                                f"bound of {self.limits.max_pixels} (--max-pixels); split it into smaller requests",
+                                code=ErrorCode.TOO_LARGE)
+
     def _sample_spawn(self, request: SampleSpawn) -> dict[str, Any]:
         loaded = self._scenes.get(request.scene_key)
         positions = sample_free_positions(
@@ -256,10 +407,12 @@ class SceneWorker:
         return {"type": "spawn", "positions": np.asarray(positions, dtype=np.float32)}
 
     def health(self) -> dict[str, Any]:
-        """The ``health`` reply: identity, loaded scenes, uptime and cumulative stage timings."""
+        """The ``health`` reply: identity, loaded and loading scenes, bounds, uptime and cumulative
+        stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
-                "backend": self.backend, "scenes": self._scenes.keys(),
-                "uptime_s": time.monotonic() - self._started, "timings": self._timer.summary()}
+                "backend": self.backend, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
+                "limits": self.limits.to_dict(), "uptime_s": time.monotonic() - self._started,
+                "timings": self._timer.summary()}
 
 
 QUERY_FIELDS = (("collision", (0,), bool), ("inside", (0,), bool), ("nearest", (0, 3), np.float32),

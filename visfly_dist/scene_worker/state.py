@@ -1,16 +1,21 @@
-"""The worker's scene table: every loaded scene with its renderer and obstacle queries."""
+"""The worker's scene table: every loaded (or loading) scene with its renderer and queries.
+
+A load has two halves. :func:`prepare_scene` does the CPU-heavy part (mesh loading or generation,
+the FCL and Embree builds) on any thread; :func:`assemble_scene` runs on the serving thread and
+builds what must live there (an EGL renderer: its GL context belongs to the thread that renders).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
-from visfly_dist.errors import SceneError
+from visfly_dist.errors import ConfigError, ErrorCode, SceneError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import LoadScene
 from visfly_dist.scene_worker.queries import ObstacleQueries
-from visfly_dist.scene_worker.render_base import Renderer, make_renderer
+from visfly_dist.scene_worker.render_base import Renderer, make_renderer, resolve_backend
 from visfly_dist.scenes import resolve_source
 from visfly_dist.scenes.scene import Scene
 
@@ -35,35 +40,77 @@ class LoadedScene:
     queries: ObstacleQueries
     multi_agent: bool
 
+    @property
+    def pixels_per_agent(self) -> int:
+        """Pixels one agent costs to render: the sum over its cameras of width x height."""
+        return sum(c.width * c.height for c in self.cameras)
 
-def build_scene(request: LoadScene, roots: Sequence[Path], backend: str) -> LoadedScene:
-    """Resolve a load request's source under ``roots`` and build its renderer and queries.
 
-    Args:
-        request: the validated ``load_scene`` request.
-        roots: directories scene files may come from (never empty: no unconfined reads).
-        backend: ``auto``, ``egl`` or ``raycast``; ``auto`` picks per the request's cameras.
+@dataclass
+class PreparedScene:
+    """The thread-independent half of a load: scene, queries, and the renderer unless it is EGL."""
+
+    request: LoadScene
+    scene: Scene
+    queries: ObstacleQueries
+    renderer: Renderer | None
+
+    def discard(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+
+
+def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str) -> PreparedScene:
+    """Resolve a load request's source under ``roots``; build its queries and (unless EGL) renderer.
+
+    Safe on any thread. Args as :func:`assemble_scene`'s inputs: the validated request, the scene
+    roots (never empty: no unconfined reads) and the backend (``auto``, ``egl`` or ``raycast``).
 
     Raises:
-        SceneError: the source is unknown, unreadable or outside ``roots``.
-        ConfigError: the backend cannot render these cameras.
+        SceneError: the source is unknown, unreadable, outside ``roots``, or this worker's backend
+            cannot render its cameras.
     """
     assert roots, "a worker always has at least one scene root"
     scene = resolve_source(request.source, list(roots))
-    renderer = make_renderer(backend, scene, request.cameras, drone_radius=request.drone_radius)
+    queries = ObstacleQueries(scene, drone_radius=request.drone_radius)
+    renderer = None
+    if _backend_for(request, backend) != "egl":
+        renderer = _renderer(request, scene, backend)
+    return PreparedScene(request, scene, queries, renderer)
+
+
+def assemble_scene(prepared: PreparedScene, backend: str) -> LoadedScene:
+    """Finish a load on the serving thread (builds an EGL renderer there)."""
+    request = prepared.request
+    renderer = prepared.renderer or _renderer(request, prepared.scene, backend)
+    return LoadedScene(request.scene_key, prepared.scene, request.cameras, renderer, prepared.queries,
+                       request.multi_agent)
+
+
+def _backend_for(request: LoadScene, backend: str) -> str:
     try:
-        queries = ObstacleQueries(scene, drone_radius=request.drone_radius)
-    except BaseException:
-        renderer.close()
-        raise
-    return LoadedScene(request.scene_key, scene, request.cameras, renderer, queries, request.multi_agent)
+        return resolve_backend(backend, request.cameras)
+    except ConfigError as exc:
+        raise SceneError(f"this worker cannot render scene {request.scene_key!r}: {exc}") from None
+
+
+def _renderer(request: LoadScene, scene: Scene, backend: str) -> Renderer:
+    try:
+        return make_renderer(backend, scene, request.cameras, drone_radius=request.drone_radius)
+    except ConfigError as exc:
+        raise SceneError(f"this worker cannot render scene {request.scene_key!r}: {exc}") from None
 
 
 class SceneTable:
-    """Loaded scenes by key. Not thread-safe: the worker uses it from its serving thread only."""
+    """Loaded scenes by key, and the keys whose load is in progress.
+
+    Not thread-safe: the worker uses it from its serving thread only. A key being re-loaded keeps
+    serving its old scene until the new one is put in its place.
+    """
 
     def __init__(self) -> None:
         self._scenes: dict[str, LoadedScene] = {}
+        self._loading: dict[str, Any] = {}
 
     def put(self, loaded: LoadedScene) -> None:
         """Add a scene, replacing (and closing) one loaded under the same key."""
@@ -73,25 +120,66 @@ class SceneTable:
             old.renderer.close()
 
     def get(self, key: str) -> LoadedScene:
-        """The scene loaded under ``key``; SceneError naming the loaded keys otherwise."""
+        """The scene loaded under ``key``; SceneError (``scene_loading`` or ``unknown_scene``) otherwise."""
         try:
             return self._scenes[key]
         except KeyError:
+            if key in self._loading:
+                raise SceneError(f"scene_key {key!r} is still loading on this worker; wait for its load reply",
+                                 code=ErrorCode.SCENE_LOADING) from None
             raise SceneError(
-                f"scene_key {key!r} is not loaded on this worker; loaded: {self.keys()}; "
-                "send load_scene first"
+                f"scene_key {key!r} is not loaded on this worker; loaded: {self.keys()}; send load_scene first",
+                code=ErrorCode.UNKNOWN_SCENE,
             ) from None
 
-    def remove(self, key: str) -> None:
-        """Forget the scene under ``key`` and close its renderer."""
-        self.get(key).renderer.close()
-        del self._scenes[key]
+    def remove(self, key: str) -> Any | None:
+        """Forget the scene under ``key`` (closing its renderer) and its load in progress, if any.
+
+        Returns:
+            The token of the load in progress that was dropped, or ``None``.
+        """
+        job = self._loading.pop(key, None)
+        if job is None or key in self._scenes:
+            self.get(key).renderer.close()
+            del self._scenes[key]
+        return job
+
+    def begin_load(self, key: str, job: Any) -> None:
+        """Mark ``key`` as loading, with ``job`` as the token that :meth:`end_load` must present."""
+        assert key not in self._loading, key
+        self._loading[key] = job
+
+    def end_load(self, key: str, job: Any) -> bool:
+        """Clear the loading mark of ``key`` if ``job`` still owns it; False if it was dropped."""
+        if self._loading.get(key) is not job:
+            return False
+        del self._loading[key]
+        return True
+
+    def is_loading(self, key: str) -> bool:
+        return key in self._loading
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._scenes or key in self._loading
+
+    def __len__(self) -> int:
+        """Scenes loaded or loading."""
+        return len(self._scenes.keys() | self._loading.keys())
 
     def keys(self) -> list[str]:
         return sorted(self._scenes)
 
+    def loading_keys(self) -> list[str]:
+        return sorted(self._loading)
+
+    def pop_loading(self) -> list[Any]:
+        """Drop every load in progress; returns their tokens."""
+        jobs, self._loading = list(self._loading.values()), {}
+        return jobs
+
     def close(self) -> None:
         """Close every renderer; the table is empty afterwards. Idempotent."""
+        self._loading.clear()
         while self._scenes:
             _, loaded = self._scenes.popitem()
             loaded.renderer.close()

@@ -25,6 +25,13 @@ Built = tuple[Parts, np.ndarray, dict[str, Any]]
 GENERATORS: dict[str, Callable[..., Scene]] = {}
 
 GARAGE_LOW, GARAGE_HIGH = np.array([0.0, -7.0, 0.0]), np.array([18.0, 7.0, 5.0])
+MAX_PARAM_ABS = 1e4
+"""Every numeric param must lie in [-1e4, 1e4] (scenes are metres across, not light years)."""
+MAX_STONE_DENSITY = 1.0
+"""At most 1 stone per m^3 (1,260 stones): placement is quadratic in the count, about 0.5 s here."""
+MAX_PILLAR_DENSITY = 4.0
+"""At most 4 pillars per m^2 of floor (1,008 pillars)."""
+MAX_OBSTACLE_RADIUS = 3.0
 
 
 def generate_scene(kind: str, seed: int = 0, **params: Any) -> Scene:
@@ -112,6 +119,9 @@ def _coerce(kind: str, defaults: dict[str, Any], given: dict[str, Any]) -> dict[
             ok = False
         if not ok or not np.all(np.isfinite(value)):
             raise SceneError(f"param {key}={given[key]!r} of scene kind {kind!r} must be like the default {default!r}")
+        if np.any(np.abs(value) > MAX_PARAM_ABS):
+            raise SceneError(f"param {key}={given[key]!r} of scene kind {kind!r} must lie in "
+                             f"[{-MAX_PARAM_ABS:g}, {MAX_PARAM_ABS:g}]")
         out[key] = value
     return out
 
@@ -160,8 +170,9 @@ def garage_stones(
     Metadata: ``start_region``, ``goal_region`` ([[low], [high]]), ``goal`` (the goal centre),
     ``num_stones``. Objects: floor, ceiling, four walls, then ``stone_000``...
     """
-    _check(density >= 0, f"density={density} must be >= 0")
-    _check(0 < min_radius <= max_radius, f"min_radius={min_radius}, max_radius={max_radius} must satisfy 0 < min <= max")
+    _check(0 <= density <= MAX_STONE_DENSITY, f"density={density} must be in [0, {MAX_STONE_DENSITY}] stones per m^3")
+    _check(0 < min_radius <= max_radius <= MAX_OBSTACLE_RADIUS,
+           f"min_radius={min_radius}, max_radius={max_radius} must satisfy 0 < min <= max <= {MAX_OBSTACLE_RADIUS}")
     _check(margin >= 0, f"margin={margin} must be >= 0")
     start, goal = _region(start_center, start_half), _region(goal_center, goal_half)
     count = int(round(float(np.prod(GARAGE_HIGH - GARAGE_LOW)) * density))
@@ -272,8 +283,9 @@ def pillars(
     Metadata: ``start_region``, ``goal_region``, ``goal``, ``num_pillars``.
     Objects: the garage shell, then ``pillar_000``...
     """
-    _check(density >= 0, f"density={density} must be >= 0")
-    _check(0 < min_radius <= max_radius, f"min_radius={min_radius}, max_radius={max_radius} must satisfy 0 < min <= max")
+    _check(0 <= density <= MAX_PILLAR_DENSITY, f"density={density} must be in [0, {MAX_PILLAR_DENSITY}] pillars per m^2")
+    _check(0 < min_radius <= max_radius <= MAX_OBSTACLE_RADIUS,
+           f"min_radius={min_radius}, max_radius={max_radius} must satisfy 0 < min <= max <= {MAX_OBSTACLE_RADIUS}")
     start, goal = _region(start_center, start_half), _region(goal_center, goal_half)
     area = float(np.prod((GARAGE_HIGH - GARAGE_LOW)[:2]))
     count = int(round(area * density))

@@ -3,17 +3,59 @@
 Measured with eclipse-zenoh 1.10.2: a session keeps its segment files open (and flock'ed) until
 the process exits, even after ``close()``, and a cleanly exiting process sometimes leaves them on
 disk; a killed one always does. Zenoh removes files that no process holds open when the next
-session on the host opens. :func:`remove_own_segments` applies that same rule at exit to the files
-this process holds, so a worker stopped cleanly leaves nothing behind even when no other Zenoh
-process ever runs on the host again.
+session on the host opens. :func:`remove_own_segments` applies that same rule to the files this
+process holds, so a process that closed its sessions leaves nothing behind even when no other
+Zenoh process ever runs on the host again.
+
+Both sides use it: :func:`~visfly_dist.protocol.session.open_session` registers every session
+with :func:`track`, and :func:`release_segments` (called by ``close()`` of whatever owned the last
+session, and at interpreter exit) unlinks this process's files once every tracked session is closed.
+Unlinking while a session of this process is still open would hide its pool from peers that have
+not mapped it yet, hence the tracking.
 """
 
 from __future__ import annotations
 
+import atexit
 import os
+import threading
 from pathlib import Path
+from typing import Any
 
 SHM_DIR = Path("/dev/shm")
+
+_lock = threading.Lock()
+_sessions: list[Any] = []   # zenoh.Session objects cannot be weakly referenced; closed ones are pruned
+
+
+def track(session: Any) -> Any:
+    """Remember a Zenoh session of this process (for :func:`release_segments`); returns it."""
+    with _lock:
+        _sessions[:] = [s for s in _sessions if not s.is_closed()]
+        _sessions.append(session)
+    return session
+
+
+def open_sessions() -> int:
+    """How many tracked sessions of this process are still open."""
+    with _lock:
+        _sessions[:] = [s for s in _sessions if not s.is_closed()]
+        return len(_sessions)
+
+
+def release_segments() -> list[str]:
+    """Unlink this process's Zenoh shared-memory files if every tracked session is closed.
+
+    Call it after closing a session (``Aggregator.close()``, the worker command's exit); it does
+    nothing while another session of this process is open, and it runs again at interpreter exit.
+    Mappings stay valid after an unlink, so nothing already mapped is disturbed.
+
+    Returns:
+        The removed paths (empty while a session is open).
+    """
+    if open_sessions():
+        return []
+    return remove_own_segments()
 
 
 def _zenoh_files_open_in(fd_dir: Path) -> set[str]:
@@ -71,3 +113,6 @@ def remove_own_segments() -> list[str]:
             continue
         removed.append(path)
     return removed
+
+
+atexit.register(release_segments)

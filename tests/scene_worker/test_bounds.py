@@ -1,0 +1,142 @@
+"""A worker's bounds and its load path, in-process through ``SceneWorker.submit``/``handle``: loads
+run off the serving thread, every bound gives a typed error reply with its code."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.codec import decode, encode
+from visfly_dist.protocol.messages import Health, LoadScene, ScenePoses, StepRequest, UnloadScene
+from visfly_dist.protocol.session import SessionConfig
+from visfly_dist.scene_worker.limits import WorkerLimits
+from visfly_dist.scene_worker.service import SceneWorker
+
+CAMERA = CameraSpec(name="depth", width=16, height=12)
+
+
+@pytest.fixture
+def make_worker(scene_root):
+    workers = []
+
+    def make(**limits) -> SceneWorker:
+        worker = SceneWorker("bounds", SessionConfig(), [scene_root], backend="raycast", worker_id="w0",
+                             limits=WorkerLimits(**limits))
+        workers.append(worker)
+        return worker
+
+    yield make
+    for worker in workers:
+        worker.close()
+
+
+def _call(worker: SceneWorker, message: dict) -> tuple[bool, dict]:
+    ok, body = worker.handle(encode(message))
+    return ok, decode(body)
+
+
+def _load(key: str, source: str = "gen:empty") -> dict:
+    return LoadScene(key, source, (CAMERA,)).to_message()
+
+
+def _step(key: str, n: int = 2) -> dict:
+    poses = np.zeros((n, 7), np.float32)
+    poses[:, 2], poses[:, 3] = 1.0, 1.0
+    return StepRequest((ScenePoses(key, poses),)).to_message()
+
+
+def _error(worker: SceneWorker, message: dict) -> tuple[str, str, str]:
+    ok, err = _call(worker, message)
+    assert not ok, err
+    return err["error"], err["code"], err["message"]
+
+
+def test_scene_count_is_bounded_but_a_reload_of_a_held_key_is_not(make_worker):
+    worker = make_worker(max_scenes=2)
+    assert _call(worker, _load("a"))[0] and _call(worker, _load("b"))[0]
+    error, code, message = _error(worker, _load("c"))
+    assert (error, code) == ("SceneError", "overloaded") and "holds 2 scenes" in message and "--max-scenes" in message
+    assert _call(worker, _load("b", "gen:pillars?seed=1"))[0]
+    assert _call(worker, UnloadScene("a").to_message())[0] and _call(worker, _load("c"))[0]
+
+
+def test_key_length_is_bounded(make_worker):
+    worker = make_worker(max_key_chars=8)
+    assert _call(worker, _load("k" * 8))[0]
+    error, code, message = _error(worker, _load("k" * 9))
+    assert (error, code) == ("ProtocolError", "too_large") and "--max-key-chars" in message
+
+
+def test_pixels_per_step_are_bounded(make_worker):
+    worker = make_worker(max_pixels=3 * 16 * 12)
+    assert _call(worker, _load("s0"))[0]
+    ok, reply = _call(worker, _step("s0", 3))
+    assert ok and reply["images"]["depth"].shape == (3, 1, 12, 16)
+    error, code, message = _error(worker, _step("s0", 4))
+    assert (error, code) == ("ProtocolError", "too_large") and "768 pixels" in message
+    ok, reply = _call(worker, {**_step("s0", 4), "render": False})  # queries only: no pixels
+    assert ok and reply["distance"].shape == (4,)
+
+
+@pytest.mark.parametrize("source, match", [
+    ("gen:garage-stones?density=1e300", "must lie in"),
+    ("gen:garage-stones?density=3", r"density=3.0 must be in \[0, 1.0\]"),
+    ("gen:garage-stones?max_radius=50", "max_radius=50.0"),
+    ("gen:pillars?density=100", "density=100.0 must be in"),
+    ("gen:gap-walls?gap_width=-1e308", "must lie in"),
+])
+def test_generator_params_out_of_range_are_scene_errors(make_worker, source, match):
+    worker = make_worker()
+    error, code, message = _error(worker, _load("s0", source))
+    assert (error, code) == ("SceneError", "scene_error")
+    assert re.search(match, message), message
+
+
+def test_a_step_on_a_loading_key_is_refused_until_the_load_is_answered(make_worker):
+    worker = make_worker()
+    assert _call(worker, _load("old"))[0]
+    answers = []
+    worker.submit(encode(_load("new", "gen:pillars?seed=3")), lambda ok, body: answers.append((ok, decode(body))))
+    worker.submit(encode(_load("old", "gen:pillars?seed=4")), lambda ok, body: answers.append((ok, decode(body))))
+    assert answers == []  # both loads run in the background
+    assert _error(worker, _step("new"))[:2] == ("SceneError", "scene_loading")
+    assert _error(worker, _load("new"))[:2] == ("SceneError", "scene_loading")
+    assert _call(worker, _step("old"))[0]  # a key being re-loaded keeps serving its old scene
+    health = _call(worker, Health().to_message())[1]
+    assert health["loading"] == ["new", "old"] and health["scenes"] == ["old"]
+    while len(answers) < 2:
+        worker._serve_one(0.1)
+    assert [(ok, r["scene_key"]) for ok, r in answers] == [(True, "new"), (True, "old")]
+    assert _call(worker, _step("new"))[0]
+    assert _call(worker, Health().to_message())[1]["loading"] == []
+
+
+def test_unload_cancels_a_load_in_progress(make_worker):
+    worker = make_worker()
+    answers = []
+    worker.submit(encode(_load("s0", "gen:pillars?seed=5")), lambda ok, body: answers.append((ok, decode(body))))
+    assert _call(worker, UnloadScene("s0").to_message())[0]
+    assert len(answers) == 1 and not answers[0][0] and answers[0][1]["code"] == "unknown_scene"
+    assert "cancelled by unload_scene" in answers[0][1]["message"]
+    worker._serve_one(30.0)  # the finished load is discarded, not installed
+    assert _error(worker, _step("s0"))[:2] == ("SceneError", "unknown_scene")
+
+
+def test_close_answers_loads_in_progress_with_shutting_down(make_worker):
+    worker = make_worker()
+    answers = []
+    worker.submit(encode(_load("s0", "gen:pillars?seed=6")), lambda ok, body: answers.append((ok, decode(body))))
+    worker.close()
+    assert len(answers) == 1 and answers[0][1]["error"] == "WorkerShutdown"
+    assert answers[0][1]["code"] == "shutting_down"
+
+
+@pytest.mark.parametrize("kwargs", [{"max_scenes": 0}, {"max_key_chars": 257}, {"max_pixels": True},
+                                    {"max_pixels": 1.5}])
+def test_limits_refuse_bad_values(kwargs):
+    with pytest.raises(ConfigError, match=f"{next(iter(kwargs))}="):
+        WorkerLimits(**kwargs)

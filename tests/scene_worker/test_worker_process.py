@@ -1,0 +1,75 @@
+"""A real worker process under load: health keeps answering while a heavy scene loads, and a second
+worker with a live worker's id refuses to start."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from tests.helpers import call, client_session, free_port, start_worker, stop_process
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.codec import decode, encode
+from visfly_dist.protocol.messages import Health, LoadScene, ScenePoses, StepRequest
+
+pytestmark = pytest.mark.worker
+
+RUN = f"proc{os.getpid()}"
+HEAVY = "gen:garage-stones?seed=11&density=0.8"   # about 1,000 stones: seconds of generation and BVH builds
+
+
+def test_health_and_other_scenes_answer_within_1s_while_a_heavy_scene_loads(worker_factory):
+    proc = worker_factory(RUN)
+    poses = np.array([[2.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]], np.float32)
+    with client_session(proc.endpoint) as session:
+        assert call(session, proc.rpc_key, LoadScene("light", "gen:empty", (CameraSpec(),)).to_message())[0]
+        pending = session.get(proc.rpc_key, payload=encode(LoadScene("heavy", HEAVY, (CameraSpec(),)).to_message()),
+                              timeout=120.0, consolidation=zenoh.ConsolidationMode.NONE)
+        latencies, saw_loading = [], False
+        while not saw_loading or len(latencies) < 5:
+            t0 = time.perf_counter()
+            ok, health = call(session, proc.rpc_key, Health().to_message(), timeout=5.0)
+            latencies.append(time.perf_counter() - t0)
+            assert ok, health
+            if health["loading"] != ["heavy"]:
+                break  # the load is over
+            saw_loading = True
+            ok, step = call(session, proc.rpc_key, StepRequest((ScenePoses("light", poses),)).to_message())
+            assert ok and step["images"]["depth"].shape == (1, 1, 64, 64)
+            ok, err = call(session, proc.rpc_key, StepRequest((ScenePoses("heavy", poses),)).to_message())
+            assert not ok and err["code"] == "scene_loading", err
+            time.sleep(0.05)
+        assert saw_loading, "the heavy load ended before a health check saw it: choose a heavier scene"
+        assert max(latencies) < 1.0, latencies
+        (reply,) = list(pending)
+        loaded = decode(reply.ok.payload.to_bytes())
+        assert loaded["type"] == "scene_loaded" and loaded["metadata"]["num_stones"] == round(18 * 14 * 5 * 0.8)
+        ok, health = call(session, proc.rpc_key, Health().to_message())
+        assert health["scenes"] == ["heavy", "light"] and health["loading"] == []
+
+
+def test_a_second_worker_with_a_live_worker_id_refuses_to_start(worker_factory, scene_root):
+    first = worker_factory(RUN, worker_id="dup")
+    with pytest.raises(RuntimeError, match="worker id 'dup' is already alive in run") as info:
+        start_worker(RUN, f"tcp/127.0.0.1:{free_port()}", scene_root, worker_id="dup",
+                     extra_args=["--connect", first.endpoint])
+    assert "unique --worker-id" in str(info.value)
+    with client_session(first.endpoint) as session:  # the first one is untouched
+        ok, health = call(session, first.rpc_key, Health().to_message())
+        assert ok and health["worker_id"] == "dup" and health["pid"] == first.pid
+
+
+def test_a_restarted_worker_may_reuse_the_id_of_a_stopped_one(worker_factory, scene_root):
+    first = worker_factory(RUN, worker_id="again")
+    endpoint = first.endpoint
+    assert stop_process(first) == 0
+    second = start_worker(RUN, f"tcp/127.0.0.1:{endpoint.rsplit(':', 1)[1]}", scene_root, worker_id="again")
+    try:
+        with client_session(endpoint) as session:
+            ok, health = call(session, second.rpc_key, Health().to_message())
+            assert ok and health["pid"] == second.pid
+    finally:
+        stop_process(second)
