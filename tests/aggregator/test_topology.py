@@ -72,10 +72,11 @@ def test_launched_pool_restarts_workers_and_the_aggregator_follows(router, scene
             pid = agg.health()[0]["pid"]
             os.kill(pid, signal.SIGKILL)
             assert wait_for(lambda: [h.get("pid") for h in agg.health()] not in ([], [pid], [None]), timeout=60)
-            obs = agg.observe(poses)  # same worker id, new process: scenes reloaded there
+            obs = agg.observe(poses)  # same worker id, new process: scenes reloaded there, in the background
             assert obs.lost.all()
             np.testing.assert_array_equal(obs.images["depth"], before.images["depth"])
-            assert not agg.observe(poses).lost.any()
+            assert wait_for(lambda: not agg.observe(poses).lost.any(), timeout=30)
+            np.testing.assert_array_equal(agg.observe(poses).images["depth"], before.images["depth"])
             new_pid = agg.health()[0]["pid"]
     finally:
         assert stop_process(launch) == 0
