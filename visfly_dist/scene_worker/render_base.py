@@ -99,6 +99,13 @@ class Renderer(abc.ABC):
         Returns:
             ``{camera.name: (n, C, H, W) array of camera.dtype}``.
         """
+        poses = self._checked_poses(poses, show_drones)
+        if len(poses) == 0:
+            return {c.name: np.zeros((0, *c.shape), c.dtype) for c in self.cameras}
+        return self._render(poses, bool(show_drones))
+
+    def _checked_poses(self, poses: np.ndarray, show_drones: bool) -> np.ndarray:
+        """``poses`` as float64 ``(n, 7)``; ConfigError if they (or the renderer) can't be rendered."""
         if self._closed:
             raise ConfigError(f"this {self.name} renderer was closed; make a new one with make_renderer")
         poses = np.asarray(poses, dtype=np.float64)
@@ -111,9 +118,7 @@ class Renderer(abc.ABC):
         if show_drones and len(poses) and drone_segmentation_id(len(poses) - 1) <= self._max_object_id():
             raise ConfigError(f"{len(poses)} drones would share segmentation ids with scene objects "
                               f"(max object id {self._max_object_id()}); render fewer agents per call")
-        if len(poses) == 0:
-            return {c.name: np.zeros((0, *c.shape), c.dtype) for c in self.cameras}
-        return self._render(poses, bool(show_drones))
+        return poses
 
     @abc.abstractmethod
     def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
@@ -136,6 +141,36 @@ class Renderer(abc.ABC):
 
     def _max_object_id(self) -> int:
         return max((o.object_id for o in self.scene.objects), default=0)
+
+
+def render_scenes(items: Sequence[tuple[Renderer, np.ndarray, bool]]) -> list[dict[str, np.ndarray]]:
+    """Render several scenes at once: one result per item, as ``renderer.render(poses, show_drones)``.
+
+    Raycast renderers on the native tracer are traced together in ONE native call (its threads spread
+    over every camera of every scene, the GIL released once); other renderers are called in turn.
+    Every item is validated before anything is rendered.
+
+    Args:
+        items: ``(renderer, poses (n, 7), show_drones)`` per scene.
+
+    Returns:
+        ``[{camera.name: (n, C, H, W) array}]``, in the order of ``items``.
+    """
+    checked = [(r, r._checked_poses(poses, show), bool(show)) for r, poses, show in items]
+    results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
+    plans = []
+    for k, (r, poses, show) in enumerate(checked):
+        if len(poses) and getattr(r, "tracer", None) == "native":
+            plans.append((k, r, r._plan(poses, show)))
+        else:
+            results[k] = r.render(poses, show)
+    if plans:
+        from visfly_dist.scene_worker.render_native import trace
+
+        trace([b for _, _, plan in plans for b in plan.batches], max(r.threads for _, r, _ in plans))
+        for k, r, plan in plans:
+            results[k] = r._finish(plan)
+    return results  # type: ignore[return-value]
 
 
 @functools.lru_cache(maxsize=1)
@@ -199,7 +234,7 @@ def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], dro
         scene: the scene to draw.
         cameras: the cameras mounted on every drone.
         drone_radius: radius of the spheres drawn for other drones, metres.
-        **options: backend options (``raycast``: ``threads``).
+        **options: backend options (``raycast``: ``threads``, ``tracer``).
     """
     name = resolve_backend(backend, cameras)
     if name == "raycast":
