@@ -37,7 +37,9 @@ log = logging.getLogger(__name__)
 BACKENDS = ("raycast", "egl")
 BACKEND_CHOICES = ("auto", *BACKENDS)
 RAYCAST_MAX_PIXELS = 128 * 128
-"""``auto`` picks ``egl`` for depth/segmentation cameras larger than this (see :func:`choose_backend`)."""
+"""With the embreex tracer, ``auto`` picks ``egl`` for depth/segmentation cameras larger than this."""
+NATIVE_RAYCAST_MAX_PIXELS = 256 * 256
+"""With the native packet tracer, ``auto`` picks ``egl`` for cameras larger than this."""
 
 DRONE_SEGMENTATION_MAX = 65535
 SKY_RGB = (150, 180, 210)
@@ -176,8 +178,10 @@ def render_scenes(items: Sequence[tuple[Renderer, np.ndarray, bool]]) -> list[di
 @functools.lru_cache(maxsize=1)
 def available_backends() -> tuple[str, ...]:
     """The backends whose libraries are installed (cheap check; nothing is initialised)."""
+    from visfly_dist.scene_worker import render_native
+
     out = []
-    if importlib.util.find_spec("embreex") is not None:
+    if importlib.util.find_spec("embreex") is not None or render_native.available():
         out.append("raycast")
     if importlib.util.find_spec("pyrender") is not None and ctypes.util.find_library("EGL") is not None:
         out.append("egl")
@@ -188,31 +192,47 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     """Resolve a backend request, with the reason.
 
     ``auto`` takes the fastest backend able to give what the cameras ask for: ``egl`` when a camera
-    is RGB (full materials and textures) or larger than ``RAYCAST_MAX_PIXELS`` (rasterising costs
-    less per pixel than tracing), else ``raycast`` (exact depth and segmentation, and the cheaper
-    at small sizes). Measured on garage-stones, CPU time per frame: 64x64 depth raycast 0.63 ms,
-    egl (llvmpipe) 0.83 ms; 256x256 raycast 8.2 ms, egl 1.6 ms.
+    is RGB (full materials and textures) or larger than the raycast limit (rasterising costs less
+    per pixel than tracing there), else ``raycast`` (exact depth and segmentation, and the cheaper
+    at small sizes). The limit depends on the tracer. Measured on garage-stones, 100 cameras, CPU
+    time per depth frame, one run on a loaded 2-core machine (``visfly-dist bench render``):
+
+    ======  ==============  =========  ===============
+    size    native packets  embreex    egl (llvmpipe)
+    ======  ==============  =========  ===============
+    64      0.26 ms         0.75 ms    0.8-2.0 ms
+    128     0.74 ms         2.5 ms     1.9 ms
+    256     2.5 ms          10 ms      1.6-2.8 ms
+    ======  ==============  =========  ===============
+
+    So: native up to ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256, about even with egl there), embreex up
+    to ``RAYCAST_MAX_PIXELS`` (128x128).
 
     Returns:
         ``(backend name, reason)``.
     """
+    from visfly_dist.scene_worker import render_native
+
     if requested not in BACKEND_CHOICES:
         raise ConfigError(f"backend={requested!r} must be one of {BACKEND_CHOICES}")
     available = available_backends()
     if requested != "auto":
         if requested not in available:
             raise ConfigError(f"backend {requested!r} is not available here (available: {list(available)}); "
-                              "install its libraries (embreex for raycast; pyrender + libEGL for egl) or pick another")
+                              "install its libraries (embreex or the native tracer for raycast; pyrender + libEGL for egl) "
+                              "or pick another")
         return requested, "requested"
     if not available:
         raise ConfigError("no render backend is available; install embreex (raycast) or pyrender + libEGL (egl)")
     if "egl" in available:
         if any(c.kind == "rgb" for c in cameras):
             return "egl", "an RGB camera asks for full materials and textures"
-        if any(c.width * c.height > RAYCAST_MAX_PIXELS for c in cameras):
-            return "egl", f"a camera has more than {RAYCAST_MAX_PIXELS} pixels: rasterising is cheaper there"
+        limit, tracer = ((NATIVE_RAYCAST_MAX_PIXELS, "native") if render_native.available()
+                         else (RAYCAST_MAX_PIXELS, "embreex"))
+        if any(c.width * c.height > limit for c in cameras):
+            return "egl", f"a camera has more than {limit} pixels: rasterising is cheaper there than {tracer} tracing"
     if "raycast" not in available:
-        return "egl", "raycast (embreex) unavailable"
+        return "egl", "raycast (native tracer or embreex) unavailable"
     if "egl" not in available:
         return "raycast", "EGL unavailable (RGB, if asked for, from face colours only)"
     return "raycast", "small depth/segmentation cameras: raycast is exact and fastest"
@@ -226,7 +246,7 @@ def resolve_backend(requested: str, cameras: Sequence[CameraSpec]) -> str:
 
 
 def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1,
-                  **options: object) -> Renderer:
+                  threads: int | None = None, **options: object) -> Renderer:
     """Build a renderer.
 
     Args:
@@ -234,13 +254,14 @@ def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], dro
         scene: the scene to draw.
         cameras: the cameras mounted on every drone.
         drone_radius: radius of the spheres drawn for other drones, metres.
-        **options: backend options (``raycast``: ``threads``, ``tracer``).
+        threads: raycast tracing threads (None: the CPUs this process may use, at most 8); egl ignores it.
+        **options: backend options (``raycast``: ``tracer``).
     """
     name = resolve_backend(backend, cameras)
     if name == "raycast":
         from visfly_dist.scene_worker.render_raycast import RaycastRenderer
 
-        return RaycastRenderer(scene, cameras, drone_radius, **options)
+        return RaycastRenderer(scene, cameras, drone_radius, threads=threads, **options)
     from visfly_dist.scene_worker.render_egl import EglRenderer
 
     return EglRenderer(scene, cameras, drone_radius, **options)

@@ -32,6 +32,7 @@ from visfly_dist.protocol.messages import (
 )
 from visfly_dist.protocol.session import SessionConfig, open_session
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES
+from visfly_dist.scene_worker.render_raycast import default_tracer
 from visfly_dist.scene_worker.state import LoadedScene, SceneTable, build_scene
 from visfly_dist.scene_worker.timing import StageTimer
 from visfly_dist.scenes import sample_free_positions
@@ -59,11 +60,15 @@ class SceneWorker:
         scene_roots: directories scene files may be loaded from (at least one).
         backend: ``auto``, ``egl`` or ``raycast``; ``auto`` chooses per scene from its cameras.
         worker_id: this worker's id in the run; default ``<host>-<pid>``.
+        threads: raycast tracing threads; default: the CPUs this process may use, at most 8.
+
+    Attributes:
+        tracer: the raycast backend's tracer, ``native`` or ``embreex`` (the fallback).
     """
 
     def __init__(
         self, run_id: str, session: SessionConfig, scene_roots: Sequence[str | os.PathLike],
-        backend: str = "auto", worker_id: str | None = None,
+        backend: str = "auto", worker_id: str | None = None, threads: int | None = None,
     ) -> None:
         if backend not in BACKEND_CHOICES:
             raise ConfigError(f"backend={backend!r} must be one of {BACKEND_CHOICES}")
@@ -78,6 +83,9 @@ class SceneWorker:
         self.rpc_key = keys.worker_rpc(run_id, self.worker_id)
         self.alive_key = keys.worker_alive(run_id, self.worker_id)
         self.backend = backend
+        self.threads = threads
+        self.tracer, reason = default_tracer()
+        log.info("raycast tracer %s (%s)", self.tracer, reason)
         self.scene_roots = roots
         self.session_config = session
         self._scenes = SceneTable()
@@ -214,7 +222,7 @@ class SceneWorker:
         return self.health()
 
     def _load(self, request: LoadScene) -> dict[str, Any]:
-        loaded = build_scene(request, self.scene_roots, self.backend)
+        loaded = build_scene(request, self.scene_roots, self.backend, self.threads)
         self._scenes.put(loaded)
         scene = loaded.scene
         log.info("loaded scene %r from %r: %d triangles, backend %s",
@@ -252,7 +260,7 @@ class SceneWorker:
     def health(self) -> dict[str, Any]:
         """The ``health`` reply: identity, loaded scenes, uptime and cumulative stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
-                "backend": self.backend, "scenes": self._scenes.keys(),
+                "backend": self.backend, "tracer": self.tracer, "scenes": self._scenes.keys(),
                 "uptime_s": time.monotonic() - self._started, "timings": self._timer.summary()}
 
 

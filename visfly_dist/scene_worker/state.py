@@ -36,13 +36,14 @@ class LoadedScene:
     multi_agent: bool
 
 
-def build_scene(request: LoadScene, roots: Sequence[Path], backend: str) -> LoadedScene:
+def build_scene(request: LoadScene, roots: Sequence[Path], backend: str, threads: int | None = None) -> LoadedScene:
     """Resolve a load request's source under ``roots`` and build its renderer and queries.
 
     Args:
         request: the validated ``load_scene`` request.
         roots: directories scene files may come from (never empty: no unconfined reads).
         backend: ``auto``, ``egl`` or ``raycast``; ``auto`` picks per the request's cameras.
+        threads: raycast tracing threads (None: the renderer's default).
 
     Raises:
         SceneError: the source is unknown, unreadable or outside ``roots``.
@@ -50,7 +51,7 @@ def build_scene(request: LoadScene, roots: Sequence[Path], backend: str) -> Load
     """
     assert roots, "a worker always has at least one scene root"
     scene = resolve_source(request.source, list(roots))
-    renderer = make_renderer(backend, scene, request.cameras, drone_radius=request.drone_radius)
+    renderer = make_renderer(backend, scene, request.cameras, drone_radius=request.drone_radius, threads=threads)
     try:
         queries = ObstacleQueries(scene, drone_radius=request.drone_radius)
     except BaseException:
