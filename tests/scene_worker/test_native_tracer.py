@@ -61,6 +61,22 @@ def test_native_matches_embreex_bit_for_bit_with_drones(garage, res, agents):
 
 
 @needs_native
+def test_native_hit_data_for_shading_matches_embreex(garage):
+    cam = CameraSpec("c", "rgb", 40, 28)
+    poses = garage_poses(garage, 4, seed=5)
+    with RaycastRenderer(garage, [cam], tracer="native") as native, \
+            RaycastRenderer(garage, [cam], tracer="embreex") as embreex:
+        plan = native._plan(poses, show_drones=False)
+        render_native.trace(plan.batches, threads=2)
+        expected = embreex._trace_embreex(cam, poses)
+    (batch,) = plan.batches
+    np.testing.assert_array_equal(batch.prim.reshape(4, -1), expected.prim)
+    assert (expected.prim >= 0).mean() > 0.9
+    np.testing.assert_allclose(batch.uv.reshape(4, -1, 2), expected.uv, atol=1e-5)
+    assert ((batch.uv >= 0) & (batch.uv <= 1)).all()
+
+
+@needs_native
 @pytest.mark.parametrize("res", [64, 128, 256])
 def test_native_depth_of_a_tilted_floor_is_analytic(res):
     floor = box((60, 60, 0.02), (0, 0, -0.01))
