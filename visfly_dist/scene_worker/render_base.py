@@ -195,18 +195,19 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     is RGB (full materials and textures) or larger than the raycast limit (rasterising costs less
     per pixel than tracing there), else ``raycast`` (exact depth and segmentation, and the cheaper
     at small sizes). The limit depends on the tracer. Measured on garage-stones, 100 cameras, CPU
-    time per depth frame, one run on a loaded 2-core machine (``visfly-dist bench render``):
+    time per depth frame (every thread of the process), one run of ``visfly-dist bench render`` on
+    a loaded 2-core machine:
 
     ======  ==============  =========  ===============
     size    native packets  embreex    egl (llvmpipe)
     ======  ==============  =========  ===============
-    64      0.26 ms         0.75 ms    0.8-2.0 ms
-    128     0.74 ms         2.5 ms     1.9 ms
-    256     2.5 ms          10 ms      1.6-2.8 ms
+    64      0.29 ms         0.75 ms    2.1 ms
+    128     0.74 ms         2.9 ms     2.6 ms
+    256     2.4 ms          10.6 ms    3.0 ms
     ======  ==============  =========  ===============
 
-    So: native up to ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256, about even with egl there), embreex up
-    to ``RAYCAST_MAX_PIXELS`` (128x128).
+    So: native up to ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256, where egl comes close), embreex up to
+    ``RAYCAST_MAX_PIXELS`` (128x128, about even with egl there).
 
     Returns:
         ``(backend name, reason)``.
