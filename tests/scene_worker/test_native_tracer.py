@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
-from tests.helpers import call, client_session
+from tests.helpers import REPO, _read_line, call, client_session, free_port, stop_process, worker_argv
 from tests.scene_worker.test_render import analytic_zdepth, box, scene_of
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
@@ -197,3 +201,22 @@ def test_worker_states_its_tracer_in_health_and_log(worker_factory):
         ok, reply = call(session, proc.rpc_key, Health().to_message())
     assert ok and reply["tracer"] == "native"
     assert "raycast tracer native" in proc.stderr_text()
+
+
+@pytest.mark.worker
+def test_worker_ready_line_names_the_fallback_tracer(scene_root):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "VISFLY_NATIVE_TRACER": "0"}
+    proc = subprocess.Popen(worker_argv("fallback-line", f"tcp/127.0.0.1:{free_port()}", scene_root, worker_id="wf"),
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, cwd=REPO)
+    try:
+        line = _read_line(proc, 60.0)
+    finally:
+        stop_process(proc)
+    assert "worker wf ready on run fallback-line: backend raycast, tracer embreex, listening on" in line
+
+
+def test_worker_rejects_zero_threads():
+    out = subprocess.run([sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", "t", "--listen",
+                          "tcp/127.0.0.1:0", "--threads", "0"], capture_output=True, text=True, timeout=60,
+                         env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO)
+    assert out.returncode == 2 and "--threads 0 must be >= 1" in out.stderr and "ready" not in out.stdout
