@@ -65,6 +65,28 @@ def test_native_matches_embreex_bit_for_bit_with_drones(garage, res, agents):
 
 
 @needs_native
+def test_native_draws_a_swarm_like_embreex(garage):
+    """30 drones within 1.5 m of each other: spheres overlapping in view, one the camera is inside of,
+    one cut by the near plane; every pixel of every kind equal to the embreex path's."""
+    rng = np.random.default_rng(11)
+    centre = garage_poses(garage, 2, seed=1)[0, :3]
+    poses = np.concatenate([centre + rng.uniform(-1.5, 1.5, (30, 3)), rng.normal(size=(30, 4))], axis=1)
+    poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+    poses[1, :3] = poses[0, :3] + [0.05, 0.0, 0.0]                     # drone 0's camera inside drone 1
+    cams = [CameraSpec("d", "depth", 48, 40, near=0.12), CameraSpec("s", "segmentation", 33, 30),
+            CameraSpec("c", "rgb", 40, 32)]
+    out = {}
+    for tracer in ("native", "embreex"):
+        with RaycastRenderer(garage, cams, drone_radius=0.15, threads=2, tracer=tracer) as r:
+            out[tracer] = r.render(poses, show_drones=True)
+    for name in ("d", "s", "c"):
+        np.testing.assert_array_equal(out["native"][name], out["embreex"][name], err_msg=name)
+    seg = out["native"]["s"]
+    assert (seg >= 65535 - 29).sum() > 500 and len(np.unique(seg[seg >= 65535 - 29])) > 10
+    assert (seg[0] == 65534).all()                                       # inside drone 1: its far side
+
+
+@needs_native
 def test_native_hit_data_for_shading_matches_embreex(garage):
     cam = CameraSpec("c", "rgb", 40, 28)
     poses = garage_poses(garage, 4, seed=5)

@@ -23,7 +23,7 @@ import numpy as np
 from visfly_dist.errors import ConfigError
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
-LIBRARY_VERSION = 1
+LIBRARY_VERSION = 2
 DISABLE_ENV = "VISFLY_NATIVE_TRACER"
 
 _f32p = ctypes.POINTER(ctypes.c_float)
@@ -38,6 +38,11 @@ class _Batch(ctypes.Structure):
         ("right", ctypes.c_void_p), ("down", ctypes.c_void_p), ("origins", ctypes.c_void_p), ("rots", ctypes.c_void_p),
         ("depth", ctypes.c_void_p), ("prim", ctypes.c_void_p), ("uv", ctypes.c_void_p),
         ("seg_table", ctypes.c_void_p), ("seg", ctypes.c_void_p),
+        ("vis_offsets", ctypes.c_void_p), ("vis_drone", ctypes.c_void_p), ("vis_centre", ctypes.c_void_p),
+        ("vis_dist2", ctypes.c_void_p), ("radius", ctypes.c_double), ("focal", ctypes.c_double),
+        ("right64", ctypes.c_void_p), ("down64", ctypes.c_void_p), ("drone", ctypes.c_void_p),
+        ("rots64", ctypes.c_void_p), ("light_dir", ctypes.c_void_p), ("ambient", ctypes.c_double),
+        ("light", ctypes.c_void_p),
     ]
 
 
@@ -111,6 +116,34 @@ class NativeScene:
 
 
 @dataclass
+class Drones:
+    """The other drones one camera of a batch may see: spheres, tested in float64.
+
+    Attributes:
+        offsets: ``(n + 1,)`` int32: frame ``a`` sees entries ``offsets[a]:offsets[a + 1]``, drawn in order.
+        index: ``(K,)`` int32 drone of each entry (its row in the call).
+        centres: ``(K, 3)`` float64 its centre in the camera frame of the frame seeing it.
+        dist2: ``(K,)`` float64 squared norm of ``centres``.
+        radius: sphere radius, metres; focal: focal length, pixels.
+        right, down: ``(W,)``, ``(H,)`` float64 pixel slopes.
+        rots: ``(n, 3, 3)`` float64 camera-to-world rotations (for the light on the spheres).
+        light_dir: ``(3,)`` float64 unit vector towards the light; ambient: its ambient share.
+    """
+
+    offsets: np.ndarray
+    index: np.ndarray
+    centres: np.ndarray
+    dist2: np.ndarray
+    radius: float
+    focal: float
+    right: np.ndarray
+    down: np.ndarray
+    rots: np.ndarray
+    light_dir: np.ndarray
+    ambient: float
+
+
+@dataclass
 class Batch:
     """One camera of ``n`` drones of one scene, with its output arrays (filled by :func:`trace`).
 
@@ -124,6 +157,9 @@ class Batch:
         uv: ``(n, H, W, 2)`` float32 barycentrics of the hit, or None.
         seg_table: ``(F + 1,)`` uint16 object id of triangle ``k`` at ``k + 1``; with ``seg``.
         seg: ``(n, H, W)`` uint16 output, or None.
+        drones: the other drones to draw, or None.
+        drone: ``(n, H, W)`` int32 output: the drone seen (``-1``: none), or None.
+        light: ``(n, H, W)`` float64 output: brightness of the drone seen, or None (needs ``drones.rots``).
     """
 
     scene: NativeScene
@@ -138,21 +174,39 @@ class Batch:
     uv: np.ndarray | None = None
     seg_table: np.ndarray | None = None
     seg: np.ndarray | None = None
+    drones: "Drones | None" = None
+    drone: np.ndarray | None = None
+    light: np.ndarray | None = None
 
     def to_struct(self) -> _Batch:
         n, h, w = self.depth.shape
         checks = [(self.right, np.float32, (w,)), (self.down, np.float32, (h,)), (self.origins, np.float32, (n, 3)),
                   (self.rots, np.float32, (n, 3, 3)), (self.depth, np.float32, (n, h, w)),
                   (self.prim, np.int32, (n, h, w)), (self.uv, np.float32, (n, h, w, 2)),
-                  (self.seg, np.uint16, (n, h, w))]
+                  (self.seg, np.uint16, (n, h, w)), (self.drone, np.int32, (n, h, w)),
+                  (self.light, np.float64, (n, h, w))]
+        d = self.drones
+        if d is not None:
+            k = len(d.index)
+            checks += [(d.offsets, np.int32, (n + 1,)), (d.index, np.int32, (k,)), (d.centres, np.float64, (k, 3)),
+                       (d.dist2, np.float64, (k,)), (d.right, np.float64, (w,)), (d.down, np.float64, (h,)),
+                       (d.rots, np.float64, (n, 3, 3)), (d.light_dir, np.float64, (3,))]
         for a, dtype, shape in checks:  # internal invariants: a bad array here would be a memory error
             assert a is None or (a.dtype == dtype and a.shape == shape and a.flags.c_contiguous), (a, dtype, shape)
         assert self.seg is None or (self.seg_table is not None and self.seg_table.dtype == np.uint16
                                     and self.seg_table.flags.c_contiguous)
+        assert (self.drone is None and self.light is None) or d is not None
         ptr = lambda a: None if a is None else a.ctypes.data  # noqa: E731
-        return _Batch(self.scene.handle, n, w, h, float(self.near), float(self.far), ptr(self.right), ptr(self.down),
-                      ptr(self.origins), ptr(self.rots), ptr(self.depth), ptr(self.prim), ptr(self.uv),
-                      ptr(self.seg_table), ptr(self.seg))
+        out = _Batch(self.scene.handle, n, w, h, float(self.near), float(self.far), ptr(self.right), ptr(self.down),
+                     ptr(self.origins), ptr(self.rots), ptr(self.depth), ptr(self.prim), ptr(self.uv),
+                     ptr(self.seg_table), ptr(self.seg))
+        if d is not None:
+            out.vis_offsets, out.vis_drone, out.vis_centre, out.vis_dist2 = (
+                ptr(d.offsets), ptr(d.index), ptr(d.centres), ptr(d.dist2))
+            out.radius, out.focal, out.ambient = float(d.radius), float(d.focal), float(d.ambient)
+            out.right64, out.down64, out.rots64, out.light_dir = ptr(d.right), ptr(d.down), ptr(d.rots), ptr(d.light_dir)
+            out.drone, out.light = ptr(self.drone), ptr(self.light)
+        return out
 
 
 def trace(batches: Sequence[Batch], threads: int) -> None:

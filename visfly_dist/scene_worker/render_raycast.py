@@ -76,7 +76,6 @@ class _Plan:
     poses: np.ndarray
     show_drones: bool
     batches: list
-    frames: list          # (origins (n, 3) f64, rots (n, 3, 3) f64) per camera
 
 
 class RaycastRenderer(Renderer):
@@ -167,30 +166,42 @@ class RaycastRenderer(Renderer):
         """The native batches of validated, non-empty ``poses``: one per camera, outputs allocated."""
         assert self.tracer == "native"
         n = len(poses)
-        batches, frames = [], []
+        batches = []
+        drawn = show_drones and n > 1 and self.drone_radius > 0
         for cam in self.cameras:
             origins, rots = camera_world_poses(poses, cam)
             shape = (n, cam.height, cam.width)
             right, down = self._slopes[cam.name]
+            rgb = cam.kind == "rgb"
             batches.append(render_native.Batch(
                 self._native, right, down, cam.near, cam.far, origins.astype(np.float32),
                 np.ascontiguousarray(rots, dtype=np.float32), np.empty(shape, np.float32),
-                prim=np.empty(shape, np.int32) if cam.kind == "rgb" else None,
-                uv=np.empty((*shape, 2), np.float32) if cam.kind == "rgb" else None,
+                prim=np.empty(shape, np.int32) if rgb else None,
+                uv=np.empty((*shape, 2), np.float32) if rgb else None,
                 seg_table=self._object_ids if cam.kind == "segmentation" else None,
-                seg=np.empty(shape, np.uint16) if cam.kind == "segmentation" else None))
-            frames.append((origins, rots))
-        return _Plan(poses, show_drones, batches, frames)
+                seg=np.empty(shape, np.uint16) if cam.kind == "segmentation" else None,
+                drones=self._native_drones(cam, origins, rots, poses[:, :3]) if drawn else None,
+                drone=np.empty(shape, np.int32) if drawn and rgb else None,
+                light=np.empty(shape, np.float64) if drawn and rgb else None))
+        return _Plan(poses, show_drones, batches)
+
+    def _native_drones(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray,
+                       centres: np.ndarray) -> render_native.Drones:
+        local, dist2, visible = self._drones_in_view(cam, origins, rots, centres)
+        a, b = np.nonzero(visible)
+        right, down = pixel_slopes(cam)
+        return render_native.Drones(
+            np.searchsorted(a, np.arange(len(centres) + 1)).astype(np.int32), b.astype(np.int32),
+            np.ascontiguousarray(local[a, b]), np.ascontiguousarray(dist2[a, b]), self.drone_radius, cam.focal_px,
+            right, down, np.ascontiguousarray(rots), np.asarray(LIGHT_DIRECTION, np.float64), AMBIENT)
 
     def _finish(self, plan: _Plan) -> dict[str, np.ndarray]:
-        """The images of a traced plan (drones added)."""
+        """The images of a traced plan (drones drawn by the tracer too)."""
         n = len(plan.poses)
         out = {}
-        for cam, b, (origins, rots) in zip(self.cameras, plan.batches, plan.frames):
+        for cam, b in zip(self.cameras, plan.batches):
             flat = lambda a: None if a is None else a.reshape(n, cam.height * cam.width, *a.shape[3:])  # noqa: E731
-            hits = _Hits(flat(b.depth), flat(b.prim), flat(b.uv), flat(b.seg))
-            if plan.show_drones:
-                self._add_drones(cam, plan.poses, origins, rots, hits)
+            hits = _Hits(flat(b.depth), flat(b.prim), flat(b.uv), flat(b.seg), flat(b.drone), flat(b.light))
             out[cam.name] = self._image(cam, hits)
         return out
 
@@ -271,20 +282,25 @@ class RaycastRenderer(Renderer):
             out.uv[s, :, 0] = np.where(hit, hits["u"].reshape(k, m), 0.0)
             out.uv[s, :, 1] = np.where(hit, hits["v"].reshape(k, m), 0.0)
 
+    def _drones_in_view(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray, centres: np.ndarray):
+        """Every drone's centre in every camera's frame ``(a, b, 3)``, its squared distance ``(a, b)``,
+        and whether camera ``a`` may see drone ``b`` ``(a, b)`` (never its own)."""
+        local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])
+        dist2 = np.einsum("abi,abi->ab", local, local)
+        visible = spheres_in_view(cam, local, self.drone_radius) & ~np.eye(len(centres), dtype=bool)
+        return local, dist2, visible
+
     def _overlay_drones(self, cam: CameraSpec, rays: np.ndarray, origins: np.ndarray, rots: np.ndarray,
                         centres: np.ndarray, depth: np.ndarray, want_light: bool):
         """Intersect every camera's rays with the other drones' spheres; nearer hits overwrite depth.
 
         Returns the index of the drone seen per pixel (``-1``: none) and, for RGB, its brightness.
         """
-        n = len(centres)
         r = self.drone_radius
         f, w, h = cam.focal_px, cam.width, cam.height
         drone = np.full(depth.shape, -1, np.int64)
         light = np.zeros(depth.shape, np.float64) if want_light else None
-        local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])   # (a, b, 3)
-        dist2 = np.einsum("abi,abi->ab", local, local)
-        visible = spheres_in_view(cam, local, r) & ~np.eye(n, dtype=bool)
+        local, dist2, visible = self._drones_in_view(cam, origins, rots, centres)
         for a, b in zip(*np.nonzero(visible)):
             c = local[a, b]
             if c[0] - r > 1e-9:      # bounding box of the sphere's image, from its box's corners

@@ -4,7 +4,8 @@
 // vf_trace renders a list of batches (one batch = one camera of n drones of one scene) on its own
 // threads: frames (batch, drone) are handed out through one shared counter, so the threads spread
 // over every camera of every scene of the call. Each frame is traced in 4x4 pixel tiles with
-// rtcIntersect16 and the coherent flag.
+// rtcIntersect16 and the coherent flag; then the other drones of the call (spheres) are drawn
+// over it in float64, as the embreex path does in numpy.
 //
 // The ray maths repeats the project's embreex path operation for operation, in float32 and without
 // fused multiply-adds (built with -ffp-contract=off), so depth is bit-identical to it:
@@ -19,6 +20,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <exception>
@@ -70,11 +72,26 @@ struct vf_batch {
   float* uv;              // (n, height, width, 2) barycentric u, v of the hit; optional
   const uint16_t* seg_table;  // (triangles + 1,) id of triangle k at k + 1, 0 at 0; with seg
   uint16_t* seg;          // (n, height, width) segmentation id; optional
+  // Other drones (spheres), drawn after the triangles; vis_offsets null: none. The spheres frame a
+  // may see are entries vis_offsets[a] .. vis_offsets[a + 1] - 1, in the order they are drawn.
+  const int32_t* vis_offsets;  // (n + 1,)
+  const int32_t* vis_drone;    // (K,) index of the drone (its row in the call)
+  const double* vis_centre;    // (K, 3) its centre in the camera frame of the frame seeing it
+  const double* vis_dist2;     // (K,) squared distance of that centre
+  double radius;               // sphere radius, metres
+  double focal;                // focal length, pixels
+  const double* right64;       // (width,) float64 column slopes (the sphere test is in float64)
+  const double* down64;        // (height,) float64 row slopes
+  int32_t* drone;              // (n, height, width) drone seen, -1: none; optional
+  const double* rots64;        // (n, 3, 3) float64 camera-to-world rotations; with light
+  const double* light_dir;     // (3,) unit vector towards the light; with light
+  double ambient;              // share of the colour lit regardless of the light; with light
+  double* light;               // (n, height, width) brightness of the drone seen; optional
 };
 
 const char* vf_last_error(void) { return last_error.c_str(); }
 
-int vf_version(void) { return 1; }
+int vf_version(void) { return 2; }
 
 // Build a robust Embree scene from a triangle soup (triangles, 3 vertices, xyz) and its BVH.
 void* vf_scene_new(const float* triangles, int64_t count) {
@@ -175,6 +192,63 @@ void trace_frame(const vf_batch& b, int32_t agent) {
           b.uv[2 * p + 1] = hit ? rh.hit.v[k] : 0.0f;
         }
         if (b.seg != nullptr) b.seg[p] = b.seg_table[prim + 1];
+        if (b.drone != nullptr) b.drone[p] = -1;
+        if (b.light != nullptr) b.light[p] = 0.0;
+      }
+    }
+  }
+}
+
+// The other drones' spheres over frame `agent`, as render_raycast.RaycastRenderer._overlay_drones
+// does it in numpy: float64 maths in the camera frame, pixels inside the sphere's image box only,
+// the nearer hit winning (against the depth so far, float32).
+void draw_drones(const vf_batch& b, int32_t agent) {
+  const int32_t w = b.width, h = b.height;
+  const size_t frame = static_cast<size_t>(agent) * static_cast<size_t>(w) * static_cast<size_t>(h);
+  const double r = b.radius, f = b.focal;
+  for (int32_t k = b.vis_offsets[agent]; k < b.vis_offsets[agent + 1]; ++k) {
+    const double* c = b.vis_centre + 3 * static_cast<size_t>(k);
+    int64_t i0 = 0, i1 = h - 1, j0 = 0, j1 = w - 1;
+    if (c[0] - r > 1e-9) {  // bounding box of the sphere's image, from its box's corners
+      const double xs[2] = {c[0] - r, c[0] + r};
+      double ymin = INFINITY, ymax = -INFINITY, zmin = INFINITY, zmax = -INFINITY;
+      for (double x : xs) {
+        for (double s : {-r, r}) {
+          ymin = std::min(ymin, (c[1] + s) / x);
+          ymax = std::max(ymax, (c[1] + s) / x);
+          zmin = std::min(zmin, (c[2] + s) / x);
+          zmax = std::max(zmax, (c[2] + s) / x);
+        }
+      }
+      j0 = std::max<int64_t>(static_cast<int64_t>(std::ceil(0.5 * w - f * ymax - 0.5)), 0);
+      j1 = std::min<int64_t>(static_cast<int64_t>(std::floor(0.5 * w - f * ymin - 0.5)), w - 1);
+      i0 = std::max<int64_t>(static_cast<int64_t>(std::ceil(0.5 * h - f * zmax - 0.5)), 0);
+      i1 = std::min<int64_t>(static_cast<int64_t>(std::floor(0.5 * h - f * zmin - 0.5)), h - 1);
+    }
+    const double d2 = b.vis_dist2[k], rr = d2 - r * r;
+    for (int64_t i = i0; i <= i1; ++i) {
+      for (int64_t j = j0; j <= j1; ++j) {
+        const double dy = -b.right64[j], dz = -b.down64[i];
+        const double qa = (1.0 + dy * dy) + dz * dz;
+        const double qb = (c[0] + dy * c[1]) + dz * c[2];
+        const double disc = qb * qb - qa * rr;
+        const double root = std::sqrt(std::max(disc, 0.0));
+        double t = (qb - root) / qa;
+        if (!(t >= b.near_m)) t = (qb + root) / qa;  // near side clipped (or camera inside): far side
+        const size_t p = frame + static_cast<size_t>(i) * w + static_cast<size_t>(j);
+        if (!(disc >= 0 && t >= b.near_m && t < b.far_m && t < static_cast<double>(b.depth[p]))) continue;
+        const int32_t seen = b.vis_drone[k];
+        b.depth[p] = static_cast<float>(t);
+        if (b.prim != nullptr) b.prim[p] = -1;
+        if (b.seg != nullptr) b.seg[p] = static_cast<uint16_t>(65535 - seen);
+        if (b.drone != nullptr) b.drone[p] = seen;
+        if (b.light != nullptr) {
+          const double n[3] = {(t - c[0]) / r, (t * dy - c[1]) / r, (t * dz - c[2]) / r};  // camera frame
+          const double* m = b.rots64 + 9 * static_cast<size_t>(agent);
+          double dot = 0.0;
+          for (int a = 0; a < 3; ++a) dot += (m[3 * a] * n[0] + m[3 * a + 1] * n[1] + m[3 * a + 2] * n[2]) * b.light_dir[a];
+          b.light[p] = b.ambient + (1.0 - b.ambient) * std::fabs(dot);
+        }
       }
     }
   }
@@ -197,6 +271,7 @@ int vf_trace(const vf_batch* batches, int32_t count, int32_t threads) {
       for (int64_t f = next.fetch_add(1); f < frames; f = next.fetch_add(1)) {
         while (first[k + 1] <= f) ++k;  // frames are handed out in order: k only moves forward
         trace_frame(batches[k], static_cast<int32_t>(f - first[k]));
+        if (batches[k].vis_offsets != nullptr) draw_drones(batches[k], static_cast<int32_t>(f - first[k]));
       }
     };
     const int64_t helpers = std::min<int64_t>(std::max(threads, 1), frames) - 1;
