@@ -14,7 +14,8 @@ Both start rays on the near plane and cut them at the far plane. RGB is each fac
 (textures approximated by ``visual.to_color()``) lit by the fixed light of :mod:`render_base`
 (two-sided Lambert plus ambient), computed once per face since the light is fixed in the world; it
 is shaded from the hit data (triangle, barycentrics) in one function, :meth:`_shade`. Other drones
-are spheres intersected analytically after the Embree pass, the nearer hit winning.
+are spheres intersected analytically (float64) after the Embree pass, the nearer hit winning: by
+the native tracer in the same call, or in numpy (:meth:`_overlay_drones`) with embreex.
 """
 
 from __future__ import annotations
