@@ -21,7 +21,7 @@ from visfly_dist.scene_worker.render_raycast import RaycastRenderer
 from visfly_dist.scenes import generate_scene
 
 needs_native = pytest.mark.skipif(not render_native.available(),
-                                  reason=f"native tracer not built: {render_native.load_library()[1]}")
+                                  reason=f"native tracer unavailable: {render_native.load_library()[1]}")
 
 
 @pytest.fixture(scope="module")
@@ -167,6 +167,7 @@ def test_render_scenes_validates_every_item_before_rendering():
 @pytest.fixture
 def no_native(monkeypatch, tmp_path):
     """The native library forced missing (a path where nothing is built)."""
+    monkeypatch.delenv(render_native.DISABLE_ENV, raising=False)
     monkeypatch.setattr(render_native, "LIBRARY_PATH", tmp_path / "libvisfly_tracer.so")
     render_native.load_library.cache_clear()
     yield tmp_path / "libvisfly_tracer.so"
