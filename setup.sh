@@ -24,6 +24,19 @@ fi
 "$PY" -m pip install -q --disable-pip-version-check "torch==2.13.0"
 "$PY" -m pip install -q --disable-pip-version-check -e ".[bench,dev]"
 
+# The native packet tracer (raycast backend) against Debian's Embree 3. Optional: without it the
+# raycast backend uses embreex, slower; set-up goes on and says so.
+build_tracer() {
+  if ! command -v g++ >/dev/null || ! command -v make >/dev/null || [ ! -e /usr/include/embree3/rtcore.h ]; then
+    [ "$(id -u)" = 0 ] || return 1
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq g++ make libembree-dev >/dev/null
+  fi
+  make -s -C visfly_dist/scene_worker/native
+}
+if ! build_tracer >/dev/null 2>&1; then
+  echo "setup.sh: native tracer not built (needs g++, make and libembree-dev, installed as root); raycast uses embreex" >&2
+fi
+
 if [ "${VISFLY_SETUP_ONLY:-0}" != "1" ]; then
   exec "$PY" -m visfly_dist.cli train navigation "$@"
 fi

@@ -187,7 +187,7 @@ def test_auto_backend_picks_raycast_for_depth_and_egl_for_rgb():
     name, reason = choose_backend("auto", [*depth_only, CameraSpec("c", "rgb")])
     assert (name, reason) == ("egl", "an RGB camera asks for full materials and textures")
     assert resolve_backend("egl", depth_only) == "egl"
-    assert resolve_backend("auto", [CameraSpec("d", "depth", 256, 256)]) == "egl"
+    assert resolve_backend("auto", [CameraSpec("d", "depth", 320, 320)]) == "egl"
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

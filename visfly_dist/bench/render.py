@@ -6,9 +6,15 @@ wall time. The same is then measured "through a worker": a real ``visfly-dist wo
 loopback (Zenoh, shared memory) answers ``StepRequest``s (render only), so the row includes encoding
 and transport. Obstacle queries (:class:`ObstacleQueries`, same poses) are timed in-process.
 
-JSON rows: ``backend, res, kind, agents, frames_per_s, where (in_process|worker), seconds`` and one
-queries row ``backend="fcl", kind="queries", agents, queries_per_s, query_share_of_raycast_step``:
-the queries' share of a step that renders 64x64 depth with raycast and queries (``q / (render + q)``).
+The raycast backend is measured with each tracer (``native`` packets and the ``embreex`` fallback) on
+1 and 2 threads. ``cpu_frames_per_s`` is frames per CPU-second of the whole process (every thread):
+the per-core figure, steadier than wall time on a shared machine.
+
+JSON rows: ``backend, tracer (raycast only), threads (raycast only), res, kind, agents, frames_per_s,
+cpu_frames_per_s (in-process rows), where (in_process|worker), seconds``; one queries row
+``backend="fcl", kind="queries", agents, queries_per_s, query_share_of_raycast_step``: the queries'
+share of a step that renders 64x64 depth with raycast and queries (``q / (render + q)``); and the
+goal rows of issue 8 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``.
 """
 
 from __future__ import annotations
@@ -57,11 +63,16 @@ def bench_poses(scene: Any, n: int, seed: int = 0) -> np.ndarray:
     return np.concatenate([found[:n], quat], axis=1)
 
 
-def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64, 256),
+def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64, 128, 256),
                  kinds: Sequence[str] = ("depth",), cameras: int = 100, reps: int = 3,
                  scene: str = "garage-stones", seed: int = 0, worker: bool = True, search_radius: float = 5.0,
+                 threads: Sequence[int] = (1, 2), tracers: Sequence[str] | None = None,
                  log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Measure every backend x resolution x kind, in-process and (if ``worker``) through a worker.
+
+    The raycast backend is measured with each tracer (native packets, embreex) on each thread count,
+    the configurations of one resolution and kind one right after the other, so their ratios come
+    from the same minute of a shared machine.
 
     Args:
         backends: ``raycast`` and/or ``egl``; default: every available one.
@@ -72,31 +83,40 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
         scene: generator name, rendered with ``seed``.
         worker: also measure through a real worker process.
         search_radius: the obstacle queries' search radius, metres.
+        threads: raycast tracing threads to measure (the worker rows use the largest).
+        tracers: raycast tracers to measure; default: ``native`` (when built) and ``embreex``.
         log: progress lines.
 
     Returns:
-        The rows described in the module docstring.
+        The rows described in the module docstring, then the goal rows (:func:`goal_rows`).
     """
     from visfly_dist.bench.common import time_it
     from visfly_dist.scene_worker.queries import ObstacleQueries
-    from visfly_dist.scene_worker.render_base import available_backends, make_renderer
+    from visfly_dist.scene_worker.render_base import available_backends
     from visfly_dist.scenes import generate_scene
 
     backends = list(backends or available_backends())
-    _check(backends, res, kinds, cameras, reps)
+    tracers = list(tracers or available_tracers())
+    _check(backends, res, kinds, cameras, reps, threads, tracers)
     world = generate_scene(scene, seed=seed)
     poses = bench_poses(world, cameras, seed)
     log(f"[bench render] {scene} seed {seed}: {world.num_triangles} triangles, {len(world.objects)} objects, "
         f"{cameras} drones")
-    rows: list[dict[str, Any]] = []
+    configs: list[tuple[str, str | None, int | None]] = []
     for backend in backends:
-        for r in res:
-            for kind in kinds:
-                cam = CameraSpec(name=kind, kind=kind, width=r, height=r)
-                with make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS) as renderer:
-                    t = time_it(lambda: renderer.render(poses), reps=reps, warmup=1)
-                rows.append(_row(backend, r, kind, cameras, t.median, "in_process"))
-                log(f"[bench render] {backend} {kind} {r}x{r} in-process: {rows[-1]['frames_per_s']:.1f} frames/s")
+        if backend == "raycast":
+            configs += [("raycast", tracer, n) for n in threads for tracer in tracers]
+        else:
+            configs.append((backend, None, None))
+    rows: list[dict[str, Any]] = []
+    for r in res:
+        for kind in kinds:
+            cam = CameraSpec(name=kind, kind=kind, width=r, height=r)
+            for backend, tracer, n in configs:
+                wall, cpu = _time_in_process(backend, tracer, n, world, cam, poses, reps)
+                rows.append(_row(backend, r, kind, cameras, wall, "in_process", tracer, n, cpu))
+                log(f"[bench render] {_label(rows[-1])} {kind} {r}x{r} in-process: "
+                    f"{rows[-1]['frames_per_s']:.1f} frames/s, {rows[-1]['cpu_frames_per_s']:.1f} frames/CPU-s")
 
     queries = ObstacleQueries(world, DRONE_RADIUS)
     tq = time_it(lambda: queries.query(poses[:, :3], search_radius), reps=max(reps, 3), warmup=1)
@@ -112,35 +132,106 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
             log(f"[bench render] skipping the worker rows: {reason}")
         else:
             for backend in backends:
-                rows += _bench_worker(backend, res, kinds, poses, scene, seed, reps, log)
-    return rows
+                rows += _bench_worker(backend, res, kinds, poses, scene, seed, reps, max(threads), log)
+    goals = goal_rows(rows)
+    for g in goals:
+        log(f"[bench render] goal {g['goal']}: {g['value']:.2f} (target >= {g['target']:g}): "
+            f"{'met' if g['met'] else 'NOT met'}")
+    return rows + goals
 
 
-def _check(backends: Sequence[str], res: Sequence[int], kinds: Sequence[str], cameras: int, reps: int) -> None:
+def available_tracers() -> list[str]:
+    """The raycast tracers usable here: ``native`` when its library loads, and ``embreex`` when installed."""
+    from visfly_dist.scene_worker import render_native
+
+    out = ["native"] if render_native.available() else []
+    return out + (["embreex"] if importlib.util.find_spec("embreex") is not None else [])
+
+
+GOALS = (
+    # (goal, numerator (tracer, threads, res), denominator, measure, target); issue 8's goals
+    ("native / embreex per core, 64x64 depth", ("native", 1, 64), ("embreex", 1, 64), "cpu_frames_per_s", 2.5),
+    ("native / embreex per core, 256x256 depth", ("native", 1, 256), ("embreex", 1, 256), "cpu_frames_per_s", 3.5),
+    ("native 2 threads / 1 thread, 64x64 depth", ("native", 2, 64), ("native", 1, 64), "frames_per_s", 1.8),
+    ("native 2 threads, 64x64 depth frames/s", ("native", 2, 64), None, "frames_per_s", 7000.0),
+)
+
+
+def goal_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Issue 8's goals as rows ``{"backend": "raycast", "kind": "goal", "goal", "value", "target", "met"}``,
+    from the in-process raycast depth rows of this run (goals whose rows are missing are left out)."""
+    found = {(r["tracer"], r["threads"], r["res"]): r for r in rows
+             if r.get("backend") == "raycast" and r.get("kind") == "depth" and r.get("where") == "in_process"}
+    out = []
+    for goal, num, den, measure, target in GOALS:
+        if num not in found or (den is not None and den not in found):
+            continue
+        value = found[num][measure] / (found[den][measure] if den is not None else 1.0)
+        out.append({"backend": "raycast", "kind": "goal", "goal": goal, "value": value, "target": target,
+                    "met": bool(value >= target)})
+    return out
+
+
+def _time_in_process(backend: str, tracer: str | None, threads: int | None, world: Any, cam: CameraSpec,
+                     poses: np.ndarray, reps: int) -> tuple[float, float]:
+    """Median wall seconds and median CPU seconds (every thread of this process) of one render call."""
+    from visfly_dist.scene_worker.render_base import make_renderer
+
+    options = {"tracer": tracer} if tracer else {}
+    with make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS, threads=threads, **options) as renderer:
+        renderer.render(poses)
+        walls, cpus = [], []
+        for _ in range(reps):
+            c0, t0 = time.process_time(), time.perf_counter()
+            renderer.render(poses)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+    return float(np.median(walls)), float(np.median(cpus))
+
+
+def _check(backends: Sequence[str], res: Sequence[int], kinds: Sequence[str], cameras: int, reps: int,
+           threads: Sequence[int] = (1,), tracers: Sequence[str] = ()) -> None:
     from visfly_dist.scene_worker.render_base import BACKENDS
+    from visfly_dist.scene_worker.render_raycast import TRACERS
 
     problems = [f"backend {b!r} must be one of {BACKENDS}" for b in backends if b not in BACKENDS]
     problems += [f"kind {k!r} must be one of {SENSOR_KINDS}" for k in kinds if k not in SENSOR_KINDS]
     problems += [f"res {r!r} must be an int in [1, 2048]" for r in res if not 1 <= int(r) <= 2048]
+    problems += [f"threads {n!r} must be an int in [1, 64]" for n in threads if not 1 <= int(n) <= 64]
+    problems += [f"tracer {t!r} must be one of {TRACERS}" for t in tracers if t not in TRACERS]
+    if "raycast" in backends and not tracers:
+        problems.append("no raycast tracer is available (build the native tracer or install embreex)")
     if cameras < 1 or reps < 1:
         problems.append(f"agents={cameras} and reps={reps} must be >= 1")
     if problems:
         raise ConfigError("; ".join(problems))
 
 
-def _row(backend: str, res: int, kind: str, agents: int, seconds: float, where: str) -> dict[str, Any]:
-    return {"backend": backend, "res": int(res), "kind": kind, "agents": agents, "frames_per_s": agents / seconds,
-            "where": where, "seconds": seconds}
+def _row(backend: str, res: int, kind: str, agents: int, seconds: float, where: str, tracer: str | None = None,
+         threads: int | None = None, cpu_seconds: float | None = None) -> dict[str, Any]:
+    row = {"backend": backend, "tracer": tracer, "threads": threads, "res": int(res), "kind": kind, "agents": agents,
+           "frames_per_s": agents / seconds, "where": where, "seconds": seconds}
+    if cpu_seconds is not None:
+        row["cpu_frames_per_s"] = agents / cpu_seconds if cpu_seconds > 0 else float("inf")
+    return row
+
+
+def _label(row: dict[str, Any]) -> str:
+    return " ".join(str(x) for x in (row["backend"], row.get("tracer"), row.get("threads") and f"x{row['threads']}") if x)
 
 
 def _raycast_depth64_seconds(rows: list[dict[str, Any]], world: Any, poses: np.ndarray, reps: int) -> float | None:
-    """Seconds of one raycast 64x64 depth render of ``poses``: from the rows, else measured now."""
+    """Seconds of one raycast 64x64 depth render of ``poses`` with the default tracer at its fastest
+    thread count: from the rows, else measured now."""
     from visfly_dist.bench.common import time_it
     from visfly_dist.scene_worker.render_base import available_backends, make_renderer
+    from visfly_dist.scene_worker.render_raycast import default_tracer
 
-    for row in rows:
-        if (row["backend"], row["res"], row["kind"]) == ("raycast", 64, "depth"):
-            return row["seconds"]
+    tracer = default_tracer()[0]
+    seconds = [row["seconds"] for row in rows if (row["backend"], row.get("tracer"), row.get("res"), row["kind"])
+               == ("raycast", tracer, 64, "depth") and row["where"] == "in_process"]
+    if seconds:
+        return min(seconds)
     if "raycast" not in available_backends():
         return None
     with make_renderer("raycast", world, [CameraSpec(width=64, height=64)], drone_radius=DRONE_RADIUS) as r:
@@ -154,21 +245,24 @@ def _worker_unavailable() -> str | None:
 
 
 def _bench_worker(backend: str, res: Sequence[int], kinds: Sequence[str], poses: np.ndarray, scene: str, seed: int,
-                  reps: int, log: Callable[[str], None]) -> list[dict[str, Any]]:
-    """Rows measured through one worker process of ``backend``; none (and a message) if it can't start."""
+                  reps: int, threads: int, log: Callable[[str], None]) -> list[dict[str, Any]]:
+    """Rows measured through one worker process of ``backend`` (``--threads threads``, its default
+    tracer); none (and a message) if it can't start."""
     from visfly_dist.protocol.session import client_of, open_session
+    from visfly_dist.scene_worker.render_raycast import default_tracer
 
     rows = []
+    tracer, threads_used = (default_tracer()[0], threads) if backend == "raycast" else (None, None)
     try:
-        with _worker_process(backend) as (endpoint, rpc_key):
+        with _worker_process(backend, threads) as (endpoint, rpc_key):
             session = open_session(client_of([endpoint]))
             try:
                 for r in res:
                     for kind in kinds:
                         cam = CameraSpec(name=kind, kind=kind, width=r, height=r)
                         seconds = _time_worker_render(session, rpc_key, cam, poses, f"gen:{scene}?seed={seed}", reps)
-                        rows.append(_row(backend, r, kind, len(poses), seconds, "worker"))
-                        log(f"[bench render] {backend} {kind} {r}x{r} via worker: "
+                        rows.append(_row(backend, r, kind, len(poses), seconds, "worker", tracer, threads_used))
+                        log(f"[bench render] {_label(rows[-1])} {kind} {r}x{r} via worker: "
                             f"{rows[-1]['frames_per_s']:.1f} frames/s")
             finally:
                 session.close()
@@ -193,7 +287,7 @@ def _time_worker_render(session: Any, rpc_key: str, cam: CameraSpec, poses: np.n
 
 
 @contextmanager
-def _worker_process(backend: str) -> Iterator[tuple[str, str]]:
+def _worker_process(backend: str, threads: int) -> Iterator[tuple[str, str]]:
     """Start ``visfly-dist worker`` on a free loopback port; yield ``(endpoint, rpc key)``; stop it."""
     from visfly_dist.protocol import keys
 
@@ -201,7 +295,8 @@ def _worker_process(backend: str) -> Iterator[tuple[str, str]]:
     run_id, worker_id = f"bench{os.getpid()}", f"render-{backend}"
     with tempfile.TemporaryDirectory() as root, tempfile.TemporaryFile() as err:
         argv = [sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", run_id, "--listen", endpoint,
-                "--scene-root", root, "--backend", backend, "--worker-id", worker_id, "--parent-pid", str(os.getpid())]
+                "--scene-root", root, "--backend", backend, "--worker-id", worker_id, "--parent-pid", str(os.getpid()),
+                "--threads", str(threads)]
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err,
                                 start_new_session=True)
         try:
@@ -252,7 +347,10 @@ def _call(session: Any, key: str, message: dict[str, Any]) -> dict[str, Any]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", nargs="+", default=None, choices=("raycast", "egl"),
                         help="backends to measure (default: every available one)")
-    parser.add_argument("--res", type=int, nargs="+", default=[64, 256], help="square resolutions, pixels per side")
+    parser.add_argument("--res", type=int, nargs="+", default=[64, 128, 256], help="square resolutions, pixels per side")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="raycast tracing threads to measure")
+    parser.add_argument("--tracers", nargs="+", default=None, choices=("native", "embreex"),
+                        help="raycast tracers to measure (default: native when built, and embreex)")
     parser.add_argument("--kinds", nargs="+", default=list(SENSOR_KINDS), choices=SENSOR_KINDS, help="sensor kinds")
     parser.add_argument("--agents", type=int, default=100, help="drones per render call, one camera each")
     parser.add_argument("--scene", default="garage-stones", help="scene generator")
@@ -272,7 +370,7 @@ def run(args: argparse.Namespace) -> int:
     agents, reps = (min(args.agents, QUICK_AGENTS), 1) if args.quick else (args.agents, args.reps)
     started = time.perf_counter()
     rows = bench_render(args.backend, args.res, args.kinds, agents, reps, args.scene, args.seed, args.worker,
-                        args.search_radius, log=lambda s: print(s, flush=True))
+                        args.search_radius, args.threads, args.tracers, log=lambda s: print(s, flush=True))
     print(report.text_table(rows))
     print(f"[bench render] done in {time.perf_counter() - started:.1f} s")
     if args.json:

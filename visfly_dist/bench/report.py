@@ -149,14 +149,16 @@ def _plot_render(result: Mapping[str, Any], path: Path) -> bool:
     if not rows and not peer:
         return False
     kinds = sorted({r["kind"] for r in rows} | ({"depth"} if peer else set()), key=lambda k: (k != "depth", k))
-    backends = sorted({r["backend"] for r in rows})
+    series_name = lambda r: " ".join(  # noqa: E731  raycast rows carry a tracer and a thread count
+        str(x) for x in (r["backend"], r.get("tracer"), r.get("threads") and f"x{r['threads']}") if x)
+    backends = sorted({series_name(r) for r in rows})
     colours = {b: f"C{i}" for i, b in enumerate(backends)}
     fig, axes = plt.subplots(1, len(kinds), figsize=(4.2 * len(kinds), 4.2), sharey=True, squeeze=False)
     for ax, kind in zip(axes[0], kinds):
         series: dict[tuple[str, str], list[tuple[int, float]]] = {}
         for r in rows:
             if r["kind"] == kind:
-                series.setdefault((r["backend"], r.get("where", "")), []).append((int(r["res"]), float(r["frames_per_s"])))
+                series.setdefault((series_name(r), r.get("where", "")), []).append((int(r["res"]), float(r["frames_per_s"])))
         for (backend, where), pts in sorted(series.items()):
             pts.sort()
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "o" + ("--" if where == "worker" else "-"),

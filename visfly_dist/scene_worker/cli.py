@@ -2,7 +2,9 @@
 
 Prints one line to stdout once it serves (launchers and tests wait for it)::
 
-    worker W ready on run R: backend B, listening on [...] / connected to [...]
+    worker W ready on run R: backend B, tracer T, listening on [...] / connected to [...]
+
+``T`` is the raycast backend's tracer: ``native`` (packets) or ``embreex`` (the fallback).
 
 With ``--connect`` alone the worker is a Zenoh client of those endpoints (a router or a listening
 aggregator); with ``--listen`` it is a peer listening there (others connect to it).
@@ -35,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder scene files may be loaded from (repeatable; default: current dir)")
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), default="auto",
                         help="renderer: egl (pyrender), raycast (Embree), auto (per scene's cameras)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="raycast tracing threads (default: the CPUs this process may use, at most 8)")
     parser.add_argument("--worker-id", default=None, help="id in the run (default: <host>-<pid>)")
     parser.add_argument("--no-shm", action="store_true", help="disable Zenoh shared memory")
     parser.add_argument("--lease-ms", type=int, default=2000,
@@ -95,6 +99,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--scene-root {missing} are not existing directories")
     config = session_config(args)
     limits = WorkerLimits(max_scenes=args.max_scenes, max_key_chars=args.max_key_chars, max_pixels=args.max_pixels)
+    if args.threads is not None and args.threads < 1:
+        raise ConfigError(f"--threads {args.threads} must be >= 1")
     if args.parent_pid is not None and args.parent_pid <= 0:
         raise ConfigError(f"--parent-pid {args.parent_pid} must be a positive process id")
     if "torch" in sys.modules:  # never import it here; only tame it if something else did
@@ -105,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.scene_worker.service import SceneWorker
     from visfly_dist.protocol.shm import release_segments
 
-    worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id, limits=limits)
+    worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id, limits=limits,
+                         threads=args.threads)
     original_ppid = os.getppid()
     should_stop = None
     if args.parent_pid is not None:
@@ -115,7 +122,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         worker.start()
         where = f"listening on {list(config.listen)}" if config.listen else f"connected to {list(config.connect)}"
-        print(f"worker {worker.worker_id} ready on run {args.run_id}: backend {args.backend}, {where}", flush=True)
+        print(f"worker {worker.worker_id} ready on run {args.run_id}: backend {args.backend}, "
+              f"tracer {worker.tracer}, {where}", flush=True)
         worker.serve(should_stop=should_stop)
     finally:
         worker.close()

@@ -37,7 +37,9 @@ log = logging.getLogger(__name__)
 BACKENDS = ("raycast", "egl")
 BACKEND_CHOICES = ("auto", *BACKENDS)
 RAYCAST_MAX_PIXELS = 128 * 128
-"""``auto`` picks ``egl`` for depth/segmentation cameras larger than this (see :func:`choose_backend`)."""
+"""With the embreex tracer, ``auto`` picks ``egl`` for depth/segmentation cameras larger than this."""
+NATIVE_RAYCAST_MAX_PIXELS = 256 * 256
+"""With the native packet tracer, ``auto`` picks ``egl`` for cameras larger than this."""
 
 DRONE_SEGMENTATION_MAX = 65535
 SKY_RGB = (150, 180, 210)
@@ -102,6 +104,13 @@ class Renderer(abc.ABC):
         Returns:
             ``{camera.name: (n, C, H, W) array of camera.dtype}``.
         """
+        poses = self._checked_poses(poses, show_drones)
+        if len(poses) == 0:
+            return {c.name: np.zeros((0, *c.shape), c.dtype) for c in self.cameras}
+        return self._render(poses, bool(show_drones))
+
+    def _checked_poses(self, poses: np.ndarray, show_drones: bool) -> np.ndarray:
+        """``poses`` as float64 ``(n, 7)``; ConfigError if they (or the renderer) can't be rendered."""
         if self._closed:
             raise ConfigError(f"this {self.name} renderer was closed; make a new one with make_renderer")
         poses = np.asarray(poses, dtype=np.float64)
@@ -114,9 +123,7 @@ class Renderer(abc.ABC):
         if show_drones and len(poses) and drone_segmentation_id(len(poses) - 1) <= self._max_object_id():
             raise ConfigError(f"{len(poses)} drones would share segmentation ids with scene objects "
                               f"(max object id {self._max_object_id()}); render fewer agents per call")
-        if len(poses) == 0:
-            return {c.name: np.zeros((0, *c.shape), c.dtype) for c in self.cameras}
-        return self._render(poses, bool(show_drones))
+        return poses
 
     @abc.abstractmethod
     def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
@@ -141,11 +148,43 @@ class Renderer(abc.ABC):
         return max((o.object_id for o in self.scene.objects), default=0)
 
 
+def render_scenes(items: Sequence[tuple[Renderer, np.ndarray, bool]]) -> list[dict[str, np.ndarray]]:
+    """Render several scenes at once: one result per item, as ``renderer.render(poses, show_drones)``.
+
+    Raycast renderers on the native tracer are traced together in ONE native call (its threads spread
+    over every camera of every scene, the GIL released once); other renderers are called in turn.
+    Every item is validated before anything is rendered.
+
+    Args:
+        items: ``(renderer, poses (n, 7), show_drones)`` per scene.
+
+    Returns:
+        ``[{camera.name: (n, C, H, W) array}]``, in the order of ``items``.
+    """
+    checked = [(r, r._checked_poses(poses, show), bool(show)) for r, poses, show in items]
+    results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
+    plans = []
+    for k, (r, poses, show) in enumerate(checked):
+        if len(poses) and getattr(r, "tracer", None) == "native":
+            plans.append((k, r, r._plan(poses, show)))
+        else:
+            results[k] = r.render(poses, show)
+    if plans:
+        from visfly_dist.scene_worker.render_native import trace
+
+        trace([b for _, _, plan in plans for b in plan.batches], max(r.threads for _, r, _ in plans))
+        for k, r, plan in plans:
+            results[k] = r._finish(plan)
+    return results  # type: ignore[return-value]
+
+
 @functools.lru_cache(maxsize=1)
 def available_backends() -> tuple[str, ...]:
     """The backends whose libraries are installed (cheap check; nothing is initialised)."""
+    from visfly_dist.scene_worker import render_native
+
     out = []
-    if importlib.util.find_spec("embreex") is not None:
+    if importlib.util.find_spec("embreex") is not None or render_native.available():
         out.append("raycast")
     if importlib.util.find_spec("pyrender") is not None and ctypes.util.find_library("EGL") is not None:
         out.append("egl")
@@ -156,31 +195,48 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     """Resolve a backend request, with the reason.
 
     ``auto`` takes the fastest backend able to give what the cameras ask for: ``egl`` when a camera
-    is RGB (full materials and textures) or larger than ``RAYCAST_MAX_PIXELS`` (rasterising costs
-    less per pixel than tracing), else ``raycast`` (exact depth and segmentation, and the cheaper
-    at small sizes). Measured on garage-stones, CPU time per frame: 64x64 depth raycast 0.63 ms,
-    egl (llvmpipe) 0.83 ms; 256x256 raycast 8.2 ms, egl 1.6 ms.
+    is RGB (full materials and textures) or larger than the raycast limit (rasterising costs less
+    per pixel than tracing there), else ``raycast`` (exact depth and segmentation, and the cheaper
+    at small sizes). The limit depends on the tracer. Measured on garage-stones, 100 cameras, CPU
+    time per depth frame (every thread of the process), one run of ``visfly-dist bench render`` on
+    a loaded 2-core machine:
+
+    ======  ==============  =========  ===============
+    size    native packets  embreex    egl (llvmpipe)
+    ======  ==============  =========  ===============
+    64      0.29 ms         0.75 ms    2.1 ms
+    128     0.74 ms         2.9 ms     2.6 ms
+    256     2.4 ms          10.6 ms    3.0 ms
+    ======  ==============  =========  ===============
+
+    So: native up to ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256, where egl comes close), embreex up to
+    ``RAYCAST_MAX_PIXELS`` (128x128, about even with egl there).
 
     Returns:
         ``(backend name, reason)``.
     """
+    from visfly_dist.scene_worker import render_native
+
     if requested not in BACKEND_CHOICES:
         raise ConfigError(f"backend={requested!r} must be one of {BACKEND_CHOICES}")
     available = available_backends()
     if requested != "auto":
         if requested not in available:
             raise ConfigError(f"backend {requested!r} is not available here (available: {list(available)}); "
-                              "install its libraries (embreex for raycast; pyrender + libEGL for egl) or pick another")
+                              "install its libraries (embreex or the native tracer for raycast; pyrender + libEGL for egl) "
+                              "or pick another")
         return requested, "requested"
     if not available:
         raise ConfigError("no render backend is available; install embreex (raycast) or pyrender + libEGL (egl)")
     if "egl" in available:
         if any(c.kind == "rgb" for c in cameras):
             return "egl", "an RGB camera asks for full materials and textures"
-        if any(c.width * c.height > RAYCAST_MAX_PIXELS for c in cameras):
-            return "egl", f"a camera has more than {RAYCAST_MAX_PIXELS} pixels: rasterising is cheaper there"
+        limit, tracer = ((NATIVE_RAYCAST_MAX_PIXELS, "native") if render_native.available()
+                         else (RAYCAST_MAX_PIXELS, "embreex"))
+        if any(c.width * c.height > limit for c in cameras):
+            return "egl", f"a camera has more than {limit} pixels: rasterising is cheaper there than {tracer} tracing"
     if "raycast" not in available:
-        return "egl", "raycast (embreex) unavailable"
+        return "egl", "raycast (native tracer or embreex) unavailable"
     if "egl" not in available:
         return "raycast", "EGL unavailable (RGB, if asked for, from face colours only)"
     return "raycast", "small depth/segmentation cameras: raycast is exact and fastest"
@@ -194,7 +250,7 @@ def resolve_backend(requested: str, cameras: Sequence[CameraSpec]) -> str:
 
 
 def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1,
-                  **options: object) -> Renderer:
+                  threads: int | None = None, **options: object) -> Renderer:
     """Build a renderer.
 
     Args:
@@ -202,13 +258,14 @@ def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], dro
         scene: the scene to draw.
         cameras: the cameras mounted on every drone.
         drone_radius: radius of the spheres drawn for other drones, metres.
-        **options: backend options (``raycast``: ``threads``).
+        threads: raycast tracing threads (None: the CPUs this process may use, at most 8); egl ignores it.
+        **options: backend options (``raycast``: ``tracer``).
     """
     name = resolve_backend(backend, cameras)
     if name == "raycast":
         from visfly_dist.scene_worker.render_raycast import RaycastRenderer
 
-        return RaycastRenderer(scene, cameras, drone_radius, **options)
+        return RaycastRenderer(scene, cameras, drone_radius, threads=threads, **options)
     from visfly_dist.scene_worker.render_egl import EglRenderer
 
     return EglRenderer(scene, cameras, drone_radius, **options)

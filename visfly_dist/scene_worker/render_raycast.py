@@ -1,41 +1,83 @@
 """The ``raycast`` backend: Embree primary rays through every pixel centre.
 
 One Embree scene holds every triangle of the scene; a triangle -> object id table gives
-segmentation. Ray directions (optical-axis component 1, so the ray parameter is the z-depth) are
-built in the world for all drones of a call from each camera's pixel slopes (a row term plus a
-column term: no BLAS, whose own threads would fight ours), started on the near plane, cut at the far
-plane, and traced in chunks of agents spread over a few threads (Embree releases the GIL).
+segmentation. Two tracers give the same depth (bit for bit) and the same triangle per pixel:
 
-RGB is the surface colour at each hit (:mod:`shading`: the texture sampled at the hit's UV, or
-face/vertex colours) lit by the fixed light of :mod:`render_base` (two-sided Lambert plus ambient). Other drones are spheres intersected analytically after the
-Embree pass, the nearer hit winning.
+- ``native`` (the fast path): :mod:`render_native`'s packet tracer, 16 rays per call on 4x4 pixel
+  tiles, its own threads over every frame of a call, the GIL released once per call;
+- ``embreex`` (the fallback when the native library is not built or fails to load): ray directions
+  (optical-axis component 1, so the ray parameter is the z-depth) built in numpy for all drones of a
+  call from each camera's pixel slopes (a row term plus a column term: no BLAS, whose own threads
+  would fight ours), traced one ray at a time in chunks of agents spread over a few threads.
+
+Both start rays on the near plane and cut them at the far plane. RGB is each face's colour
+(textures approximated by ``visual.to_color()``) lit by the fixed light of :mod:`render_base`
+(two-sided Lambert plus ambient), computed once per face since the light is fixed in the world; it
+is shaded from the hit data (triangle, barycentrics) in one function, :meth:`_shade`. Other drones
+are spheres intersected analytically (float64) after the Embree pass, the nearer hit winning: by
+the native tracer in the same call, or in numpy (:meth:`_overlay_drones`) with embreex.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from embreex import rtcore_scene
-from embreex.mesh_construction import TriangleMesh
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.scene_worker import render_native
 from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays, pixel_slopes, spheres_in_view
-from visfly_dist.scene_worker.render_base import (
-    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id,
-)
 from visfly_dist.scene_worker.shading import SurfaceShader, shade_rgb
+from visfly_dist.scene_worker.render_base import (
+    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id, face_rgb,
+)
 from visfly_dist.scenes.scene import Scene
 
+__all__ = ["RaycastRenderer", "TRACERS", "default_tracer", "face_rgb", "lambert"]
+
+log = logging.getLogger(__name__)
+
 RAYS_PER_CHUNK = 1 << 15
+TRACERS = ("native", "embreex")
 
 
 def lambert(normals: np.ndarray) -> np.ndarray:
     """Brightness of surfaces with the given unit normals under the shared light (two-sided)."""
     return AMBIENT + (1.0 - AMBIENT) * np.abs(normals @ np.asarray(LIGHT_DIRECTION))
+
+
+def default_tracer() -> tuple[str, str]:
+    """The tracer a raycast renderer uses unless told otherwise, and why."""
+    lib, reason = render_native.load_library()
+    if lib is not None:
+        return "native", "native packet tracer loaded"
+    return "embreex", f"embreex fallback: {reason}"
+
+
+@dataclass
+class _Hits:
+    """What one camera's rays hit, for ``n`` drones: arrays ``(n, H*W, ...)``."""
+
+    depth: np.ndarray                   # float32 z-depth
+    prim: np.ndarray | None = None      # int32 triangle index, -1: none (or a drone)
+    uv: np.ndarray | None = None        # float32 (n, HW, 2) barycentrics of the triangle hit
+    seg: np.ndarray | None = None       # uint16 ids (native tracer, segmentation cameras)
+    drone: np.ndarray | None = None     # int64 index of the drone seen, -1: none
+    drone_light: np.ndarray | None = None   # float64 brightness of the drone seen (RGB)
+
+
+@dataclass
+class _Plan:
+    """A validated native render call: the batches to trace, then what :meth:`_finish` needs."""
+
+    poses: np.ndarray
+    show_drones: bool
+    batches: list
 
 
 class RaycastRenderer(Renderer):
@@ -46,85 +88,180 @@ class RaycastRenderer(Renderer):
         cameras: the cameras mounted on every drone.
         drone_radius: radius of the spheres drawn for other drones, metres.
         threads: tracing threads; default: the CPUs this process may use, at most 8.
+        tracer: ``"native"``, ``"embreex"``, or None for the native one when it loads (else embreex).
+
+    Attributes:
+        tracer: the tracer in use, ``"native"`` or ``"embreex"``.
+        threads: tracing threads.
     """
 
     name = "raycast"
 
     def __init__(self, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1,
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, tracer: str | None = None) -> None:
         super().__init__(scene, cameras, drone_radius)
         if threads is None:
             threads = min(8, len(os.sched_getaffinity(0)))
-        if not isinstance(threads, int) or threads < 1:
+        if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
             raise ConfigError(f"threads={threads!r} must be an int >= 1")
+        if tracer is not None and tracer not in TRACERS:
+            raise ConfigError(f"tracer={tracer!r} must be one of {TRACERS} or None (native when built)")
+        if tracer == "native" and not render_native.available():
+            raise ConfigError(f"tracer 'native' is unavailable: {render_native.load_library()[1]}")
+        self.threads = threads
         meshes = [o.mesh for o in scene.objects if len(o.mesh.faces)]
-        self._embree = None
-        if meshes:
-            self._embree = rtcore_scene.EmbreeScene()
-            TriangleMesh(self._embree, np.concatenate([m.triangles for m in meshes]).astype(np.float32))
+        triangles = (np.concatenate([m.triangles for m in meshes]) if meshes else np.zeros((0, 3, 3))).astype(np.float32)
         self._object_ids = np.concatenate(
             [np.zeros(1, np.uint16)] + [np.full(len(o.mesh.faces), o.object_id, np.uint16) for o in scene.objects])
         self._shader = SurfaceShader(meshes) if any(c.kind == "rgb" for c in self.cameras) else None
         self._rays = {c.name: pixel_rays(c) for c in self.cameras}
         self._slopes = {c.name: tuple(s.astype(np.float32) for s in pixel_slopes(c)) for c in self.cameras}
-        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="raycast") if threads > 1 else None
-        if self._embree is not None:  # build the BVH now, not in the first render
-            self._embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
+        self._native = self._embree = self._pool = None
+        self.tracer = tracer or default_tracer()[0]
+        if self.tracer == "native":
+            try:
+                self._native = render_native.NativeScene(triangles)
+            except RuntimeError as exc:
+                if tracer == "native":
+                    raise
+                log.warning("native tracer failed on scene %r (%s); using embreex", scene.name, exc)
+                self.tracer = "embreex"
+        if self.tracer == "embreex":
+            self._init_embreex(triangles)
+
+    def _init_embreex(self, triangles: np.ndarray) -> None:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        if len(triangles):
+            self._embree = rtcore_scene.EmbreeScene()
+            TriangleMesh(self._embree, triangles)
+            self._embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # build the BVH now
+        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="raycast") if self.threads > 1 else None
 
     def _release(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
-        self._pool = self._embree = None
+        if self._native is not None:
+            self._native.close()
+        self._pool = self._embree = self._native = None
 
     def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
+        if self.tracer == "native":
+            plan = self._plan(poses, show_drones)
+            render_native.trace(plan.batches, self.threads)
+            return self._finish(plan)
         out = {}
         for cam in self.cameras:
-            depth, face, drone, drone_light = self._trace(cam, poses, show_drones)
-            shape = (len(poses), 1, cam.height, cam.width)
-            if cam.kind == "depth":
-                out[cam.name] = depth.reshape(shape)
-            elif cam.kind == "segmentation":
-                seg = self._object_ids[face]
-                if drone is not None:
-                    hit = drone >= 0
-                    seg[hit] = drone_segmentation_id(drone[hit])
-                out[cam.name] = seg.reshape(shape)
-            else:
-                rgb = shade_rgb(self._shader, cam, poses, depth, face, SKY_RGB)
-                if drone is not None:
-                    hit = drone >= 0
-                    rgb[hit] = (np.asarray(DRONE_RGB) * drone_light[hit][:, None]).round().astype(np.uint8)
-                out[cam.name] = np.ascontiguousarray(
-                    rgb.reshape(len(poses), cam.height, cam.width, 3).transpose(0, 3, 1, 2))
+            hits = self._trace_embreex(cam, poses)
+            if show_drones:
+                self._add_drones(cam, poses, *camera_world_poses(poses, cam), hits)
+            out[cam.name] = self._image(cam, poses, hits)
         return out
 
-    def _trace(self, cam: CameraSpec, poses: np.ndarray, show_drones: bool):
-        """Depth ``(n, HW)`` f32, face index + 1 ``(n, HW)`` (0 = none), and the drones hit, if any."""
+    # -- native tracer: plan (batches), trace (render_native.trace, maybe with other scenes), finish --
+
+    def _plan(self, poses: np.ndarray, show_drones: bool) -> _Plan:
+        """The native batches of validated, non-empty ``poses``: one per camera, outputs allocated."""
+        assert self.tracer == "native"
         n = len(poses)
-        rays = self._rays[cam.name]
+        batches = []
+        drawn = show_drones and n > 1 and self.drone_radius > 0
+        for cam in self.cameras:
+            origins, rots = camera_world_poses(poses, cam)
+            shape = (n, cam.height, cam.width)
+            right, down = self._slopes[cam.name]
+            rgb = cam.kind == "rgb"
+            batches.append(render_native.Batch(
+                self._native, right, down, cam.near, cam.far, origins.astype(np.float32),
+                np.ascontiguousarray(rots, dtype=np.float32), np.empty(shape, np.float32),
+                prim=np.empty(shape, np.int32) if rgb else None,
+                uv=np.empty((*shape, 2), np.float32) if rgb else None,
+                seg_table=self._object_ids if cam.kind == "segmentation" else None,
+                seg=np.empty(shape, np.uint16) if cam.kind == "segmentation" else None,
+                drones=self._native_drones(cam, origins, rots, poses[:, :3]) if drawn else None,
+                drone=np.empty(shape, np.int32) if drawn and rgb else None,
+                light=np.empty(shape, np.float64) if drawn and rgb else None))
+        return _Plan(poses, show_drones, batches)
+
+    def _native_drones(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray,
+                       centres: np.ndarray) -> render_native.Drones:
+        local, dist2, visible = self._drones_in_view(cam, origins, rots, centres)
+        a, b = np.nonzero(visible)
+        right, down = pixel_slopes(cam)
+        return render_native.Drones(
+            np.searchsorted(a, np.arange(len(centres) + 1)).astype(np.int32), b.astype(np.int32),
+            np.ascontiguousarray(local[a, b]), np.ascontiguousarray(dist2[a, b]), self.drone_radius, cam.focal_px,
+            right, down, np.ascontiguousarray(rots), np.asarray(LIGHT_DIRECTION, np.float64), AMBIENT)
+
+    def _finish(self, plan: _Plan) -> dict[str, np.ndarray]:
+        """The images of a traced plan (drones drawn by the tracer too)."""
+        n = len(plan.poses)
+        out = {}
+        for cam, b in zip(self.cameras, plan.batches):
+            flat = lambda a: None if a is None else a.reshape(n, cam.height * cam.width, *a.shape[3:])  # noqa: E731
+            hits = _Hits(flat(b.depth), flat(b.prim), flat(b.uv), flat(b.seg), flat(b.drone), flat(b.light))
+            out[cam.name] = self._image(cam, plan.poses, hits)
+        return out
+
+    # -- shared: drones, images, shading ------------------------------------------------------------
+
+    def _add_drones(self, cam: CameraSpec, poses: np.ndarray, origins: np.ndarray, rots: np.ndarray,
+                    hits: _Hits) -> None:
+        if len(poses) > 1 and self.drone_radius > 0:
+            hits.drone, hits.drone_light = self._overlay_drones(
+                cam, self._rays[cam.name], origins, rots, poses[:, :3], hits.depth, cam.kind == "rgb")
+            if hits.prim is not None:
+                hits.prim[hits.drone >= 0] = -1
+
+    def _image(self, cam: CameraSpec, poses: np.ndarray, hits: _Hits) -> np.ndarray:
+        n = len(hits.depth)
+        shape = (n, 1, cam.height, cam.width)
+        seen = None if hits.drone is None else hits.drone >= 0
+        if cam.kind == "depth":
+            return hits.depth.reshape(shape)
+        if cam.kind == "segmentation":
+            seg = hits.seg if hits.seg is not None else self._object_ids[hits.prim + 1]
+            if seen is not None:
+                seg[seen] = drone_segmentation_id(hits.drone[seen])
+            return seg.reshape(shape)
+        rgb = self._shade(cam, poses, hits)
+        return np.ascontiguousarray(rgb.reshape(n, cam.height, cam.width, 3).transpose(0, 3, 1, 2))
+
+    def _shade(self, cam: CameraSpec, poses: np.ndarray, hits: _Hits) -> np.ndarray:
+        """RGB ``(n, HW, 3)`` uint8 of the hits: the surface colour at the hit (:mod:`shading`: texture
+        at the hit's UV, or face/vertex colours) under the fixed light, sky where none; drones in their
+        colour under the same light."""
+        rgb = shade_rgb(self._shader, cam, poses, hits.depth, hits.prim + 1, SKY_RGB)
+        if hits.drone is not None:
+            seen = hits.drone >= 0
+            rgb[seen] = (np.asarray(DRONE_RGB) * hits.drone_light[seen][:, None]).round().astype(np.uint8)
+        return rgb
+
+    # -- embreex fallback ---------------------------------------------------------------------------
+
+    def _trace_embreex(self, cam: CameraSpec, poses: np.ndarray) -> _Hits:
+        """Depth, triangle and barycentrics of one camera on every drone, one ray at a time."""
+        n = len(poses)
+        m = cam.width * cam.height
         origins, rots = camera_world_poses(poses, cam)
-        depth = np.full((n, len(rays)), cam.far, np.float32)
-        face = np.zeros((n, len(rays)), np.int32)
-        step = max(1, RAYS_PER_CHUNK // len(rays))
+        hits = _Hits(np.full((n, m), cam.far, np.float32), np.full((n, m), -1, np.int32),
+                     np.zeros((n, m, 2), np.float32) if cam.kind == "rgb" else None)
+        step = max(1, RAYS_PER_CHUNK // m)
         chunks = [slice(i, min(n, i + step)) for i in range(0, n, step)]
         if self._embree is not None:
-            work = lambda s: self._trace_chunk(cam, origins[s], rots[s], depth[s], face[s])  # noqa: E731
+            work = lambda s: self._trace_chunk(cam, origins[s], rots[s], hits, s)  # noqa: E731
             if self._pool is None or len(chunks) == 1:
                 for s in chunks:
                     work(s)
             else:
                 list(self._pool.map(work, chunks))
-        drone = drone_light = None
-        if show_drones and n > 1 and self.drone_radius > 0:
-            drone, drone_light = self._overlay_drones(cam, rays, origins, rots, poses[:, :3], depth, cam.kind == "rgb")
-            face[drone >= 0] = 0
-        return depth, face, drone, drone_light
+        return hits
 
-    def _trace_chunk(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray, depth: np.ndarray,
-                     face: np.ndarray) -> None:
+    def _trace_chunk(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray, out: _Hits, s: slice) -> None:
         right, down = self._slopes[cam.name]
         rots = rots.astype(np.float32)
-        k, m = depth.shape
+        k, m = len(rots), cam.width * cam.height
         # direction of pixel (i, j) = R @ (1, -right[j], -down[i]): a row term plus a column term
         rows = rots[:, None, :, 0] - down[None, :, None] * rots[:, None, :, 2]       # (k, H, 3)
         cols = -right[None, :, None] * rots[:, None, :, 1]                          # (k, W, 3)
@@ -136,8 +273,21 @@ class RaycastRenderer(Renderer):
         hits = self._embree.run(starts.reshape(-1, 3), dirs.reshape(-1, 3),
                                 dists=np.full(k * m, cam.far - cam.near, np.float32), output=1)
         prim = hits["primID"].reshape(k, m)
-        np.add(prim, 1, out=face)
-        np.copyto(depth, np.where(prim >= 0, np.float32(cam.near) + hits["tfar"].reshape(k, m), np.float32(cam.far)))
+        out.prim[s] = prim
+        np.copyto(out.depth[s], np.where(prim >= 0, np.float32(cam.near) + hits["tfar"].reshape(k, m),
+                                         np.float32(cam.far)))
+        if out.uv is not None:
+            hit = prim >= 0
+            out.uv[s, :, 0] = np.where(hit, hits["u"].reshape(k, m), 0.0)
+            out.uv[s, :, 1] = np.where(hit, hits["v"].reshape(k, m), 0.0)
+
+    def _drones_in_view(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray, centres: np.ndarray):
+        """Every drone's centre in every camera's frame ``(a, b, 3)``, its squared distance ``(a, b)``,
+        and whether camera ``a`` may see drone ``b`` ``(a, b)`` (never its own)."""
+        local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])
+        dist2 = np.einsum("abi,abi->ab", local, local)
+        visible = spheres_in_view(cam, local, self.drone_radius) & ~np.eye(len(centres), dtype=bool)
+        return local, dist2, visible
 
     def _overlay_drones(self, cam: CameraSpec, rays: np.ndarray, origins: np.ndarray, rots: np.ndarray,
                         centres: np.ndarray, depth: np.ndarray, want_light: bool):
@@ -145,14 +295,11 @@ class RaycastRenderer(Renderer):
 
         Returns the index of the drone seen per pixel (``-1``: none) and, for RGB, its brightness.
         """
-        n = len(centres)
         r = self.drone_radius
         f, w, h = cam.focal_px, cam.width, cam.height
         drone = np.full(depth.shape, -1, np.int64)
         light = np.zeros(depth.shape, np.float64) if want_light else None
-        local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])   # (a, b, 3)
-        dist2 = np.einsum("abi,abi->ab", local, local)
-        visible = spheres_in_view(cam, local, r) & ~np.eye(n, dtype=bool)
+        local, dist2, visible = self._drones_in_view(cam, origins, rots, centres)
         for a, b in zip(*np.nonzero(visible)):
             c = local[a, b]
             if c[0] - r > 1e-9:      # bounding box of the sphere's image, from its box's corners

@@ -42,6 +42,7 @@ from visfly_dist.protocol.session import SessionConfig, open_session
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES
 from visfly_dist.scene_worker.limits import WorkerLimits
 from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
+from visfly_dist.scene_worker.render_raycast import default_tracer
 from visfly_dist.scene_worker.timing import StageTimer
 from visfly_dist.scenes import sample_free_positions
 
@@ -85,11 +86,16 @@ class SceneWorker:
         backend: ``auto``, ``egl`` or ``raycast``; ``auto`` chooses per scene from its cameras.
         worker_id: this worker's id in the run; default ``<host>-<pid>``.
         limits: what one request and the whole worker may ask for.
+        threads: raycast tracing threads; default: the CPUs this process may use, at most 8.
+
+    Attributes:
+        tracer: the raycast backend's tracer, ``native`` or ``embreex`` (the fallback).
     """
 
     def __init__(
         self, run_id: str, session: SessionConfig, scene_roots: Sequence[str | os.PathLike],
         backend: str = "auto", worker_id: str | None = None, limits: WorkerLimits | None = None,
+        threads: int | None = None,
     ) -> None:
         if backend not in BACKEND_CHOICES:
             raise ConfigError(f"backend={backend!r} must be one of {BACKEND_CHOICES}")
@@ -104,6 +110,9 @@ class SceneWorker:
         self.rpc_key = keys.worker_rpc(run_id, self.worker_id)
         self.alive_key = keys.worker_alive(run_id, self.worker_id)
         self.backend = backend
+        self.threads = threads
+        self.tracer, reason = default_tracer()
+        log.info("raycast tracer %s (%s)", self.tracer, reason)
         self.scene_roots = roots
         self.session_config = session
         self.limits = limits or WorkerLimits()
@@ -323,7 +332,7 @@ class SceneWorker:
                              "unload one or load on another worker", code=ErrorCode.OVERLOADED)
         job = _LoadJob(request, respond, start)
         self._scenes.begin_load(key, job)
-        job.future = self._loader.submit(prepare_scene, request, self.scene_roots, self.backend)
+        job.future = self._loader.submit(prepare_scene, request, self.scene_roots, self.backend, self.threads)
         job.future.add_done_callback(lambda _: self._inbox.put(job))  # runs on the loader thread
 
     def _finish_load(self, job: _LoadJob) -> None:
@@ -410,7 +419,7 @@ class SceneWorker:
         """The ``health`` reply: identity, loaded and loading scenes, bounds, uptime and cumulative
         stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
-                "backend": self.backend, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
+                "backend": self.backend, "tracer": self.tracer, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
                 "limits": self.limits.to_dict(), "uptime_s": time.monotonic() - self._started,
                 "timings": self._timer.summary()}
 

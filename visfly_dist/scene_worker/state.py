@@ -60,7 +60,7 @@ class PreparedScene:
             self.renderer.close()
 
 
-def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str) -> PreparedScene:
+def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str, threads: int | None = None) -> PreparedScene:
     """Resolve a load request's source under ``roots``; build its queries and (unless EGL) renderer.
 
     Safe on any thread. Args as :func:`assemble_scene`'s inputs: the validated request, the scene
@@ -75,7 +75,7 @@ def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str) -> Pr
     queries = ObstacleQueries(scene, drone_radius=request.drone_radius)
     renderer = None
     if _backend_for(request, backend) != "egl":
-        renderer = _renderer(request, scene, backend)
+        renderer = _renderer(request, scene, backend, threads)
     return PreparedScene(request, scene, queries, renderer)
 
 
@@ -94,9 +94,9 @@ def _backend_for(request: LoadScene, backend: str) -> str:
         raise SceneError(f"this worker cannot render scene {request.scene_key!r}: {exc}") from None
 
 
-def _renderer(request: LoadScene, scene: Scene, backend: str) -> Renderer:
+def _renderer(request: LoadScene, scene: Scene, backend: str, threads: int | None = None) -> Renderer:
     try:
-        return make_renderer(backend, scene, request.cameras, drone_radius=request.drone_radius)
+        return make_renderer(backend, scene, request.cameras, drone_radius=request.drone_radius, threads=threads)
     except ConfigError as exc:
         raise SceneError(f"this worker cannot render scene {request.scene_key!r}: {exc}") from None
 

@@ -1,0 +1,219 @@
+"""The native packet tracer (``native/tracer.cpp``) through ctypes.
+
+The library is built at install time (``make -C visfly_dist/scene_worker/native``, run by
+``setup.sh``) against Debian's Embree 3. :func:`load_library` finds it, or says why not; the
+raycast backend then falls back to embreex. ``VISFLY_NATIVE_TRACER=0`` turns it off.
+
+A :class:`NativeScene` holds one scene's Embree BVH (built once). :func:`trace` renders a list of
+:class:`Batch` es (one camera of many drones of one scene each) in ONE native call: the tracer's
+threads spread over every frame of every batch, and ctypes releases the GIL for the whole call.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from visfly_dist.errors import ConfigError
+
+LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
+LIBRARY_VERSION = 2
+DISABLE_ENV = "VISFLY_NATIVE_TRACER"
+
+_f32p = ctypes.POINTER(ctypes.c_float)
+
+
+class _Batch(ctypes.Structure):
+    """``struct vf_batch`` of tracer.cpp (field for field)."""
+
+    _fields_ = [
+        ("scene", ctypes.c_void_p), ("n", ctypes.c_int32), ("width", ctypes.c_int32), ("height", ctypes.c_int32),
+        ("near_m", ctypes.c_double), ("far_m", ctypes.c_double),
+        ("right", ctypes.c_void_p), ("down", ctypes.c_void_p), ("origins", ctypes.c_void_p), ("rots", ctypes.c_void_p),
+        ("depth", ctypes.c_void_p), ("prim", ctypes.c_void_p), ("uv", ctypes.c_void_p),
+        ("seg_table", ctypes.c_void_p), ("seg", ctypes.c_void_p),
+        ("vis_offsets", ctypes.c_void_p), ("vis_drone", ctypes.c_void_p), ("vis_centre", ctypes.c_void_p),
+        ("vis_dist2", ctypes.c_void_p), ("radius", ctypes.c_double), ("focal", ctypes.c_double),
+        ("right64", ctypes.c_void_p), ("down64", ctypes.c_void_p), ("drone", ctypes.c_void_p),
+        ("rots64", ctypes.c_void_p), ("light_dir", ctypes.c_void_p), ("ambient", ctypes.c_double),
+        ("light", ctypes.c_void_p),
+    ]
+
+
+@functools.lru_cache(maxsize=1)
+def load_library() -> tuple[ctypes.CDLL | None, str]:
+    """The loaded tracer library, or ``None`` and the reason it is not used."""
+    if os.environ.get(DISABLE_ENV, "1") == "0":
+        return None, f"disabled by {DISABLE_ENV}=0"
+    if not LIBRARY_PATH.exists():
+        return None, f"{LIBRARY_PATH} not built (make -C {LIBRARY_PATH.parent}; needs g++ and libembree-dev)"
+    try:
+        lib = ctypes.CDLL(str(LIBRARY_PATH))
+        lib.vf_version.restype = ctypes.c_int
+        if lib.vf_version() != LIBRARY_VERSION:
+            return None, f"{LIBRARY_PATH} is version {lib.vf_version()}, expected {LIBRARY_VERSION}; rebuild it"
+        lib.vf_last_error.restype = ctypes.c_char_p
+        lib.vf_scene_new.restype = ctypes.c_void_p
+        lib.vf_scene_new.argtypes = [_f32p, ctypes.c_int64]
+        lib.vf_scene_free.restype = None
+        lib.vf_scene_free.argtypes = [ctypes.c_void_p]
+        lib.vf_trace.restype = ctypes.c_int
+        lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
+    except (OSError, AttributeError) as exc:
+        return None, f"{LIBRARY_PATH} failed to load: {exc}"
+    return lib, "loaded"
+
+
+def available() -> bool:
+    """Whether the native tracer can be used here."""
+    return load_library()[0] is not None
+
+
+def _lib() -> ctypes.CDLL:
+    lib, reason = load_library()
+    if lib is None:
+        raise ConfigError(f"the native tracer is unavailable: {reason}")
+    return lib
+
+
+def _error(lib: ctypes.CDLL, what: str) -> RuntimeError:
+    return RuntimeError(f"native tracer: {what} failed: {lib.vf_last_error().decode(errors='replace')}")
+
+
+class NativeScene:
+    """One scene's triangles in an Embree BVH (robust), built on construction.
+
+    Args:
+        triangles: ``(F, 3, 3)`` vertices of every triangle (a soup); ``F`` may be 0 (nothing is hit).
+    """
+
+    def __init__(self, triangles: np.ndarray) -> None:
+        self._lib = _lib()
+        self.handle: int | None = None
+        tris = np.ascontiguousarray(triangles, dtype=np.float32)
+        if tris.ndim != 3 or tris.shape[1:] != (3, 3):
+            raise ConfigError(f"triangles shape {tris.shape} must be (F, 3, 3)")
+        if len(tris):
+            handle = self._lib.vf_scene_new(tris.ctypes.data_as(_f32p), len(tris))
+            if not handle:
+                raise _error(self._lib, f"building the BVH of {len(tris)} triangles")
+            self.handle = handle
+
+    def close(self) -> None:
+        """Free the BVH; idempotent."""
+        if self.handle is not None:
+            self._lib.vf_scene_free(self.handle)
+            self.handle = None
+
+    def __del__(self) -> None:  # last resort; renderers call close()
+        self.close()
+
+
+@dataclass
+class Drones:
+    """The other drones one camera of a batch may see: spheres, tested in float64.
+
+    Attributes:
+        offsets: ``(n + 1,)`` int32: frame ``a`` sees entries ``offsets[a]:offsets[a + 1]``, drawn in order.
+        index: ``(K,)`` int32 drone of each entry (its row in the call).
+        centres: ``(K, 3)`` float64 its centre in the camera frame of the frame seeing it.
+        dist2: ``(K,)`` float64 squared norm of ``centres``.
+        radius: sphere radius, metres; focal: focal length, pixels.
+        right, down: ``(W,)``, ``(H,)`` float64 pixel slopes.
+        rots: ``(n, 3, 3)`` float64 camera-to-world rotations (for the light on the spheres).
+        light_dir: ``(3,)`` float64 unit vector towards the light; ambient: its ambient share.
+    """
+
+    offsets: np.ndarray
+    index: np.ndarray
+    centres: np.ndarray
+    dist2: np.ndarray
+    radius: float
+    focal: float
+    right: np.ndarray
+    down: np.ndarray
+    rots: np.ndarray
+    light_dir: np.ndarray
+    ambient: float
+
+
+@dataclass
+class Batch:
+    """One camera of ``n`` drones of one scene, with its output arrays (filled by :func:`trace`).
+
+    Attributes:
+        scene: the scene traced.
+        right, down: ``(W,)``, ``(H,)`` float32 pixel slopes (``camera_math.pixel_slopes``).
+        near, far: clip distances, metres.
+        origins: ``(n, 3)`` float32 camera centres; ``rots``: ``(n, 3, 3)`` float32 camera-to-world.
+        depth: ``(n, H, W)`` float32 output.
+        prim: ``(n, H, W)`` int32 triangle hit (``-1``: none), or None.
+        uv: ``(n, H, W, 2)`` float32 barycentrics of the hit, or None.
+        seg_table: ``(F + 1,)`` uint16 object id of triangle ``k`` at ``k + 1``; with ``seg``.
+        seg: ``(n, H, W)`` uint16 output, or None.
+        drones: the other drones to draw, or None.
+        drone: ``(n, H, W)`` int32 output: the drone seen (``-1``: none), or None.
+        light: ``(n, H, W)`` float64 output: brightness of the drone seen, or None (needs ``drones.rots``).
+    """
+
+    scene: NativeScene
+    right: np.ndarray
+    down: np.ndarray
+    near: float
+    far: float
+    origins: np.ndarray
+    rots: np.ndarray
+    depth: np.ndarray
+    prim: np.ndarray | None = None
+    uv: np.ndarray | None = None
+    seg_table: np.ndarray | None = None
+    seg: np.ndarray | None = None
+    drones: "Drones | None" = None
+    drone: np.ndarray | None = None
+    light: np.ndarray | None = None
+
+    def to_struct(self) -> _Batch:
+        n, h, w = self.depth.shape
+        checks = [(self.right, np.float32, (w,)), (self.down, np.float32, (h,)), (self.origins, np.float32, (n, 3)),
+                  (self.rots, np.float32, (n, 3, 3)), (self.depth, np.float32, (n, h, w)),
+                  (self.prim, np.int32, (n, h, w)), (self.uv, np.float32, (n, h, w, 2)),
+                  (self.seg, np.uint16, (n, h, w)), (self.drone, np.int32, (n, h, w)),
+                  (self.light, np.float64, (n, h, w))]
+        d = self.drones
+        if d is not None:
+            k = len(d.index)
+            checks += [(d.offsets, np.int32, (n + 1,)), (d.index, np.int32, (k,)), (d.centres, np.float64, (k, 3)),
+                       (d.dist2, np.float64, (k,)), (d.right, np.float64, (w,)), (d.down, np.float64, (h,)),
+                       (d.rots, np.float64, (n, 3, 3)), (d.light_dir, np.float64, (3,))]
+        for a, dtype, shape in checks:  # internal invariants: a bad array here would be a memory error
+            assert a is None or (a.dtype == dtype and a.shape == shape and a.flags.c_contiguous), (a, dtype, shape)
+        assert self.seg is None or (self.seg_table is not None and self.seg_table.dtype == np.uint16
+                                    and self.seg_table.flags.c_contiguous)
+        assert (self.drone is None and self.light is None) or d is not None
+        ptr = lambda a: None if a is None else a.ctypes.data  # noqa: E731
+        out = _Batch(self.scene.handle, n, w, h, float(self.near), float(self.far), ptr(self.right), ptr(self.down),
+                     ptr(self.origins), ptr(self.rots), ptr(self.depth), ptr(self.prim), ptr(self.uv),
+                     ptr(self.seg_table), ptr(self.seg))
+        if d is not None:
+            out.vis_offsets, out.vis_drone, out.vis_centre, out.vis_dist2 = (
+                ptr(d.offsets), ptr(d.index), ptr(d.centres), ptr(d.dist2))
+            out.radius, out.focal, out.ambient = float(d.radius), float(d.focal), float(d.ambient)
+            out.right64, out.down64, out.rots64, out.light_dir = ptr(d.right), ptr(d.down), ptr(d.rots), ptr(d.light_dir)
+            out.drone, out.light = ptr(self.drone), ptr(self.light)
+        return out
+
+
+def trace(batches: Sequence[Batch], threads: int) -> None:
+    """Fill every batch's outputs in one native call on ``threads`` threads (GIL released)."""
+    lib = _lib()
+    if not batches:
+        return
+    array = (_Batch * len(batches))(*(b.to_struct() for b in batches))
+    if lib.vf_trace(array, len(batches), int(threads)) != 0:
+        raise _error(lib, f"tracing {len(batches)} batches")
