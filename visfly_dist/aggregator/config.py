@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.keys import check_chunk
+from visfly_dist.protocol.session import load_config_file, resolve_config_file
 
 BACKENDS = ("auto", "egl", "raycast")
 LINK_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream")
@@ -59,6 +60,9 @@ class PoolConfig:
         respawn: replace a local worker that dies.
         min_workers: live workers needed before ``start()`` returns.
         lease_ms: Zenoh link lease of local workers: a hung worker is declared dead after this.
+        zenoh_config: a Zenoh JSON5 config file (TLS, user/password; see ``deploy/zenoh``) for the
+            aggregator's session and its local workers; ``None`` uses ``$ZENOH_CONFIG`` when set.
+            visfly-dist's own settings (mode, endpoints, shared memory, lease) override the file.
     """
 
     run_id: str | None = None
@@ -73,6 +77,7 @@ class PoolConfig:
     respawn: bool = True
     min_workers: int = 1
     lease_ms: int = 2000
+    zenoh_config: str | None = None
 
     def __post_init__(self) -> None:
         self.connect = tuple(self.connect)
@@ -108,6 +113,12 @@ class PoolConfig:
             out.append(f"min_workers={self.min_workers!r} must be an int >= 1")
         if not isinstance(self.lease_ms, int) or not 200 <= self.lease_ms <= 600_000:
             out.append(f"lease_ms={self.lease_ms!r} must be an int in [200, 600000]")
+        zenoh_config = resolve_config_file(self.zenoh_config)
+        if zenoh_config is not None:
+            try:
+                load_config_file(zenoh_config)
+            except ConfigError as exc:
+                out.append(str(exc))
         return out
 
     def validate(self) -> "PoolConfig":

@@ -18,6 +18,7 @@ import signal
 import sys
 
 from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.session import add_zenoh_config_argument
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(?P<port>\d{1,5})([?#].*)?$")
 
@@ -40,6 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="link lease: a hung worker is declared dead after about this long")
     parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",
                         help="exit when this process is gone (local pools)")
+    add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -64,7 +66,7 @@ def session_config(args: argparse.Namespace):
     if mode == "client" and listen:
         raise ConfigError(f"--listen {list(listen)} needs --mode peer: a Zenoh client does not listen")
     return SessionConfig(mode=mode, connect=connect, listen=listen, shared_memory=not args.no_shm,
-                         lease_ms=args.lease_ms)
+                         lease_ms=args.lease_ms, config_file=args.zenoh_config)
 
 
 def parent_gone(parent_pid: int, original_ppid: int) -> bool:
