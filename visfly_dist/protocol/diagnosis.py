@@ -107,7 +107,7 @@ def diagnose_open_failure(where: str, endpoints: tuple[str, ...], zcfg, exc: Exc
         zcfg: the ``zenoh.Config`` that failed (its TLS and usrpwd settings guide the probes).
         exc: Zenoh's exception, quoted at the end of the message.
     """
-    tail = f" (zenoh: {exc})"
+    tail = f" (zenoh: {str(exc).split(' at /')[0].strip()})"  # drop the Rust source location
     parsed = {ep: _split(ep) for ep in endpoints}
     probed = {ep: p for ep, p in parsed.items() if p is not None and p[0] in ("tcp", "tls")}
     if not probed:
