@@ -6,6 +6,7 @@ with fresh certificates); workers are ``visfly-dist worker`` processes.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -136,3 +137,20 @@ def test_a_pool_hands_its_config_to_its_local_workers(routers, configs):
     with agg:
         assert agg.workers == ["local-0"]
         assert agg.assignment() == {0: "local-0"}
+
+
+@pytest.mark.parametrize("command", [
+    ["worker", "--run-id", "r", "--connect", "tcp/127.0.0.1:7447"],
+    ["router", "--listen", "tcp/127.0.0.1:0"],
+    ["launch", "--workers", "1", "--run-id", "r", "--connect", "tcp/127.0.0.1:7447"],
+    ["train", "hover", "--timesteps", "8"],
+    ["eval", "hover", "--checkpoint", str(REPO / "README.md")],
+    ["bench", "step", "--steps", "1"],
+])
+def test_every_command_takes_a_zenoh_config_and_names_a_bad_one(tmp_path, command):
+    missing = tmp_path / "nowhere.json5"
+    out = subprocess.run([sys.executable, "-m", "visfly_dist.cli", *command, "--zenoh-config", str(missing)],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.returncode == 2, out
+    assert f"zenoh config file '{missing}' does not exist" in out.stderr, out.stderr

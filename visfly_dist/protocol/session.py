@@ -60,8 +60,9 @@ def load_config_file(path: str):
         raise ConfigError(f"zenoh config file {path!r} does not exist")
     try:
         cfg = zenoh.Config.from_file(path)
-    except Exception as exc:  # zenoh raises ZError with the parser's message
-        raise ConfigError(f"zenoh config file {path!r} is not a valid Zenoh config: {exc}") from None
+    except Exception as exc:  # zenoh raises ZError with the parser's message and its Rust source location
+        detail = " ".join(str(exc).split(" at /")[0].split())
+        raise ConfigError(f"zenoh config file {path!r} is not a valid Zenoh config: {detail}") from None
     folder = os.path.dirname(path)
     for key in PATH_KEYS:
         value = json.loads(cfg.get_json(key))

@@ -15,17 +15,19 @@ from __future__ import annotations
 
 import argparse
 
-from visfly_dist.protocol.session import add_zenoh_config_argument, resolve_config_file
+from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
 from visfly_dist.training.config import BACKBONES, TrainConfig, parse_override
 
 
 def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
-    """``overrides`` with ``--zenoh-config`` (absolute) in its ``pool`` map, when given."""
+    """``overrides`` with ``--zenoh-config`` (absolute, checked) in its ``pool`` map, when given."""
     if zenoh_config is None:
         return overrides
+    path = resolve_config_file(zenoh_config)
+    load_config_file(path)
     pool = overrides.get("pool")
     pool = dict(pool) if isinstance(pool, dict) else {}
-    return {**overrides, "pool": {**pool, "zenoh_config": resolve_config_file(zenoh_config)}}
+    return {**overrides, "pool": {**pool, "zenoh_config": path}}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
