@@ -154,3 +154,14 @@ def test_every_command_takes_a_zenoh_config_and_names_a_bad_one(tmp_path, comman
                          env={**os.environ, "PYTHONPATH": str(REPO)})
     assert out.returncode == 2, out
     assert f"zenoh config file '{missing}' does not exist" in out.stderr, out.stderr
+
+
+def test_a_local_pool_refuses_credentials_it_cannot_use(configs):
+    from visfly_dist.aggregator import PoolConfig
+    from visfly_dist.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="sets user/password authentication, but this pool's 2 local worker"):
+        PoolConfig(num_local_workers=2, zenoh_config=str(configs / "trainer-usrpwd.json5")).validate()
+    PoolConfig(num_local_workers=2, zenoh_config=str(configs / "client-tls.json5")).validate()
+    PoolConfig(connect=("tcp/127.0.0.1:7447",), num_local_workers=2,
+               zenoh_config=str(configs / "worker-usrpwd.json5")).validate()

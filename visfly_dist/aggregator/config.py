@@ -6,6 +6,7 @@ bad run fails before any process starts.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import secrets
@@ -113,13 +114,25 @@ class PoolConfig:
             out.append(f"min_workers={self.min_workers!r} must be an int >= 1")
         if not isinstance(self.lease_ms, int) or not 200 <= self.lease_ms <= 600_000:
             out.append(f"lease_ms={self.lease_ms!r} must be an int in [200, 600000]")
-        zenoh_config = resolve_config_file(self.zenoh_config)
-        if zenoh_config is not None:
-            try:
-                load_config_file(zenoh_config)
-            except ConfigError as exc:
-                out.append(str(exc))
+        out += self._zenoh_config_problems()
         return out
+
+    def _zenoh_config_problems(self) -> list[str]:
+        path = resolve_config_file(self.zenoh_config)
+        if path is None:
+            return []
+        try:
+            zcfg = load_config_file(path)
+        except ConfigError as exc:
+            return [str(exc)]
+        listens = not self.connect or bool(self.listen)  # peer mode: local workers connect to this process
+        usrpwd = [json.loads(zcfg.get_json(f"transport/auth/usrpwd/{k}")) for k in ("user", "dictionary_file")]
+        if listens and isinstance(self.num_local_workers, int) and self.num_local_workers > 0 and any(usrpwd):
+            return [f"zenoh config {path!r} sets user/password authentication, but this pool's "
+                    f"{self.num_local_workers} local worker(s) connect to the pool's own listener, which usrpwd "
+                    "cannot admit; give connect endpoints of a router, or a config without transport/auth/usrpwd "
+                    "(TLS alone is fine) for a local pool"]
+        return []
 
     def validate(self) -> "PoolConfig":
         """Raise ConfigError listing every problem; return self when valid."""
