@@ -169,3 +169,4 @@ def test_tls_usrpwd_acl_training_and_typed_refusals(tmp_path, deploy_configs):
             assert re.search(message, proc.stderr_text()), (config, proc.stderr_text())
         stop_cleanly(wb, wc, router)
         assert all(h.pids() == [] for h in lan.hosts), "a process was left behind in a host"
+    assert not any(ns.startswith(lan.prefix) for ns in os.listdir("/run/netns")), "a namespace was left behind"
