@@ -103,7 +103,7 @@ class Lan:
 
     def __init__(self, net: int) -> None:
         self.net = net
-        self.prefix = f"vf{os.getpid() % 100000}{net}"
+        self.prefix = f"vf{os.getpid()}-{net}-"
         self.switch = f"{self.prefix}sw"
         self.hosts: list[Host] = []
         self.procs: list[subprocess.Popen] = []
@@ -137,6 +137,11 @@ class Lan:
                 os.kill(int(pid), signal.SIGKILL)  # only processes inside a namespace this lan made
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         self.hosts = []
+
+    def leftover_namespaces(self) -> list[str]:
+        """Namespaces of this lan that still exist (empty after :meth:`close`)."""
+        names = os.listdir("/run/netns") if os.path.isdir("/run/netns") else []
+        return [n for n in names if n.startswith(self.prefix)]
 
     def __enter__(self) -> "Lan":
         return self

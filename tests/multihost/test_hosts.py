@@ -137,7 +137,7 @@ def test_tcp_training_survives_a_killed_worker_a_partition_and_a_router_restart(
         assert stop_trainer(trainer) > 300
         stop_cleanly(wb, wc, router)
         assert all(h.pids() == [] for h in lan.hosts), "a process was left behind in a host"
-    assert not any(ns.startswith(lan.prefix) for ns in os.listdir("/run/netns")), "a namespace was left behind"
+    assert lan.leftover_namespaces() == [], "a namespace was left behind"
 
 
 def test_tls_usrpwd_acl_training_and_typed_refusals(tmp_path, deploy_configs):
@@ -169,4 +169,4 @@ def test_tls_usrpwd_acl_training_and_typed_refusals(tmp_path, deploy_configs):
             assert re.search(message, proc.stderr_text()), (config, proc.stderr_text())
         stop_cleanly(wb, wc, router)
         assert all(h.pids() == [] for h in lan.hosts), "a process was left behind in a host"
-    assert not any(ns.startswith(lan.prefix) for ns in os.listdir("/run/netns")), "a namespace was left behind"
+    assert lan.leftover_namespaces() == [], "a namespace was left behind"
