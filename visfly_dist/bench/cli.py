@@ -34,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _with_zenoh_config(run, args: argparse.Namespace) -> int:
     """Run a benchmark with ``--zenoh-config`` exported as ``$ZENOH_CONFIG`` (checked first)."""
-    path = resolve_config_file(args.zenoh_config)
     if args.zenoh_config is not None:
+        path = resolve_config_file(args.zenoh_config)
         load_config_file(path)
         os.environ[ZENOH_CONFIG_ENV] = path
     return run(args)
