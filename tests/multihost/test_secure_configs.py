@@ -165,3 +165,24 @@ def test_a_local_pool_refuses_credentials_it_cannot_use(configs):
     PoolConfig(num_local_workers=2, zenoh_config=str(configs / "client-tls.json5")).validate()
     PoolConfig(connect=("tcp/127.0.0.1:7447",), num_local_workers=2,
                zenoh_config=str(configs / "worker-usrpwd.json5")).validate()
+
+
+def test_launch_hands_its_config_to_its_workers(routers, configs, tmp_path):
+    ep = routers["usrpwd"]  # a worker started without the file could not join this router
+    launch = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "launch", "--workers", "1", "--run-id", "launched",
+                               "--connect", ep, "--worker-prefix", "lw", "--scene-root", str(tmp_path),
+                               "--backend", "raycast", "--log-dir", str(tmp_path / "logs"),
+                               "--zenoh-config", str(configs / "worker-usrpwd.json5")],
+                              cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(REPO)},
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    session = open_session(client_of([ep], config_file=str(configs / "trainer-usrpwd.json5")))
+    try:
+        assert "launch ready" in _read_line(launch, 30.0)
+        alive = keys.worker_alive("launched", "lw-0")
+        deadline = time.monotonic() + 60
+        while not [r for r in session.liveliness().get(alive, timeout=1) if r.ok is not None]:
+            assert time.monotonic() < deadline, (tmp_path / "logs" / "lw-0.log").read_text()
+            time.sleep(0.2)
+    finally:
+        session.close()
+        assert stop_process(launch) == 0
