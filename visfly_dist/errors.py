@@ -101,3 +101,35 @@ class RemoteError(VisflyError):
         """
         return cls(worker_id, str(reply.get("error", "Error")), str(reply.get("message", "")),
                    str(reply.get("code", ErrorCode.INTERNAL)))
+
+
+class SessionConnectError(VisflyError, ConnectionError):
+    """A Zenoh session could not join the network; the subclasses say why, as far as Zenoh tells.
+
+    Attributes:
+        endpoints: the endpoints that were tried.
+    """
+
+    def __init__(self, message: str, endpoints: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.endpoints = tuple(endpoints)
+
+
+class RouterUnreachableError(SessionConnectError):
+    """Nothing accepts TCP connections at any of the endpoints (host down, wrong port, firewall)."""
+
+
+class TlsHandshakeError(SessionConnectError):
+    """The TLS handshake failed: unknown CA, name mismatch, missing client certificate, not TLS."""
+
+
+class AuthenticationError(SessionConnectError):
+    """The router was reached but refused the session: wrong or missing user/password."""
+
+
+class AccessDeniedError(NoWorkersError):
+    """An authenticated session sees no worker of its run: most likely the router's access control.
+
+    Zenoh drops a denied declaration, query or reply without telling either side, so this is a
+    diagnosis, not a report: the message names the user and the keys the ACL must allow.
+    """

@@ -41,7 +41,7 @@ from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.slots import Move, SlotTable
-from visfly_dist.errors import ConfigError, ErrorCode, NoWorkersError, RemoteError
+from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, UnloadScene, step_message
 
@@ -166,6 +166,14 @@ class Aggregator:
                                        remote_may_join=bool(cfg.connect or cfg.listen))
             if len(live) < cfg.min_workers:
                 report = self._pool.startup_report()
+                user = self._pool.user
+                if not live and not report and user:
+                    raise AccessDeniedError(
+                        f"run {self.run_id!r}: no worker became visible to user {user!r} within startup_timeout_s="
+                        f"{cfg.startup_timeout_s}. The router admitted {user!r}, so either no worker joined run "
+                        f"{self.run_id!r} (check the workers' --run-id and --connect) or the router's access control "
+                        f"denies {user!r} liveliness subscriptions or queries on visfly/{self.run_id}/** (Zenoh drops "
+                        "denied messages without telling the client; see deploy/zenoh/router-acl.json5)")
                 raise NoWorkersError(
                     f"run {self.run_id!r}: {len(live)} worker(s) came up within startup_timeout_s="
                     f"{cfg.startup_timeout_s}, min_workers={cfg.min_workers} needed"

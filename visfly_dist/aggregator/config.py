@@ -6,6 +6,7 @@ bad run fails before any process starts.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import secrets
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.keys import check_chunk
+from visfly_dist.protocol.session import load_config_file, resolve_config_file
 
 BACKENDS = ("auto", "egl", "raycast")
 LINK_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream")
@@ -61,6 +63,9 @@ class PoolConfig:
         lease_ms: Zenoh link lease of local workers: a hung worker is declared dead after this.
         outage_limit_s: how long a run waits when no worker at all is reachable (the router or the
             network is down) before it fails with NoWorkersError.
+        zenoh_config: a Zenoh JSON5 config file (TLS, user/password; see ``deploy/zenoh``) for the
+            aggregator's session and its local workers; ``None`` uses ``$ZENOH_CONFIG`` when set.
+            visfly-dist's own settings (mode, endpoints, shared memory, lease) override the file.
     """
 
     run_id: str | None = None
@@ -76,6 +81,7 @@ class PoolConfig:
     min_workers: int = 1
     lease_ms: int = 2000
     outage_limit_s: float = 120.0
+    zenoh_config: str | None = None
 
     def __post_init__(self) -> None:
         self.connect = tuple(self.connect)
@@ -111,7 +117,25 @@ class PoolConfig:
             out.append(f"min_workers={self.min_workers!r} must be an int >= 1")
         if not isinstance(self.lease_ms, int) or not 200 <= self.lease_ms <= 600_000:
             out.append(f"lease_ms={self.lease_ms!r} must be an int in [200, 600000]")
+        out += self._zenoh_config_problems()
         return out
+
+    def _zenoh_config_problems(self) -> list[str]:
+        path = resolve_config_file(self.zenoh_config)
+        if path is None:
+            return []
+        try:
+            zcfg = load_config_file(path)
+        except ConfigError as exc:
+            return [str(exc)]
+        listens = not self.connect or bool(self.listen)  # peer mode: local workers connect to this process
+        usrpwd = [json.loads(zcfg.get_json(f"transport/auth/usrpwd/{k}")) for k in ("user", "dictionary_file")]
+        if listens and isinstance(self.num_local_workers, int) and self.num_local_workers > 0 and any(usrpwd):
+            return [f"zenoh config {path!r} sets user/password authentication, but this pool's "
+                    f"{self.num_local_workers} local worker(s) connect to the pool's own listener, which usrpwd "
+                    "cannot admit; give connect endpoints of a router, or a config without transport/auth/usrpwd "
+                    "(TLS alone is fine) for a local pool"]
+        return []
 
     def validate(self) -> "PoolConfig":
         """Raise ConfigError listing every problem; return self when valid."""

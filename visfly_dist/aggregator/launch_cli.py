@@ -22,6 +22,7 @@ from visfly_dist.aggregator.config import BACKENDS, endpoint_problem
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.keys import check_chunk
+from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
 
 log = logging.getLogger("visfly_dist.launch")
 
@@ -43,6 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-shm", action="store_true", help="disable Zenoh shared memory")
     parser.add_argument("--lease-ms", type=int, default=2000, help="worker link lease (hang detection)")
     parser.add_argument("--log-dir", default=None, help="where worker logs go (default: a temporary folder)")
+    add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -60,6 +62,12 @@ def _check(args: argparse.Namespace) -> None:
             check_chunk(value, what)
         except ConfigError as exc:
             problems.append(str(exc))
+    zenoh_config = resolve_config_file(args.zenoh_config)
+    if zenoh_config is not None:
+        try:
+            load_config_file(zenoh_config)
+        except ConfigError as exc:
+            problems.append(str(exc))
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -69,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s launch %(levelname)s %(message)s")
     spec = WorkerLaunchSpec(run_id=args.run_id, connect=tuple(args.connect), scene_roots=tuple(args.scene_root),
                             backend=args.backend, shared_memory=not args.no_shm, lease_ms=args.lease_ms,
-                            parent_pid=os.getpid())
+                            parent_pid=os.getpid(), zenoh_config=resolve_config_file(args.zenoh_config))
     log_dir = args.log_dir or tempfile.mkdtemp(prefix=f"visfly-launch-{args.run_id}-")
     os.makedirs(log_dir, exist_ok=True)
     prefix = args.worker_prefix or _default_prefix()

@@ -126,13 +126,14 @@ class WorkerPool:
         self._log_dir: str | None = None
         self._launch: WorkerLaunchSpec | None = None
         self._replies = threading.Condition()
+        self._user: str | None = None
 
     # ----- lifecycle -------------------------------------------------------------------------
 
     def _session_config(self) -> tuple[SessionConfig, tuple[str, ...]]:
         """This process's session, and the endpoints local workers connect to."""
         cfg = self.config
-        common = dict(shared_memory=cfg.shared_memory, lease_ms=cfg.lease_ms)
+        common = dict(shared_memory=cfg.shared_memory, lease_ms=cfg.lease_ms, config_file=cfg.zenoh_config)
         if cfg.connect and not cfg.listen:
             return SessionConfig(mode="client", connect=cfg.connect, listen=(), **common), cfg.connect
         listen = cfg.listen or (f"tcp/127.0.0.1:{free_port()}",)
@@ -142,6 +143,7 @@ class WorkerPool:
     def open(self) -> None:
         """Open the session, watch liveliness, and spawn the local workers (not waiting for them)."""
         session_cfg, workers_connect = self._session_config()
+        self._user = session_cfg.user()
         self._session = open_session(session_cfg)
         try:
             self._subscriber = self._session.liveliness().declare_subscriber(
@@ -151,7 +153,7 @@ class WorkerPool:
                 self._launch = WorkerLaunchSpec(
                     run_id=self.run_id, connect=workers_connect, scene_roots=self.config.scene_roots,
                     backend=self.config.backend, shared_memory=self.config.shared_memory,
-                    lease_ms=self.config.lease_ms, parent_pid=os.getpid())
+                    lease_ms=self.config.lease_ms, parent_pid=os.getpid(), zenoh_config=session_cfg.config_file)
                 for _ in range(self.config.num_local_workers):
                     self.spawn_local()
         except BaseException:
@@ -228,6 +230,11 @@ class WorkerPool:
         self._local[wid] = worker
         log.info("run %s: started local worker %s (pid %d)", self.run_id, wid, worker.pid)
         return wid
+
+    @property
+    def user(self) -> str | None:
+        """The user name the session authenticated with (usrpwd), or ``None``."""
+        return self._user
 
     def is_local(self, worker_id: str) -> bool:
         return worker_id in self._local
@@ -346,7 +353,8 @@ class WorkerPool:
 
     def _interpret(self, wid: str, raw: tuple[bool, bytes] | None, timeout_s: float) -> Reply:
         if raw is None:
-            return Reply(wid, failure="no reply (worker gone or query dropped)")
+            return Reply(wid, failure="no reply (worker gone or query dropped; under a router's access control, "
+                                      "a denied query or reply looks the same)")
         ok, payload = raw
         if not ok and payload == b"Timeout":
             return Reply(wid, failure=f"no reply within {timeout_s:g} s (Timeout)")

@@ -12,14 +12,14 @@ import threading
 
 from visfly_dist.aggregator.config import endpoint_problem
 from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.session import add_zenoh_config_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                         help="endpoint to listen on (repeatable), e.g. tcp/0.0.0.0:7447")
     parser.add_argument("--no-shm", action="store_true", help="disable Zenoh shared memory")
-    parser.add_argument("--config", default=None, metavar="FILE",
-                        help="Zenoh JSON5 config (TLS, usrpwd, access control) applied first")
+    add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
     problems = [p for p in map(endpoint_problem, listen) if p]
     if problems:
         raise ConfigError("; ".join(problems))
-    config = SessionConfig(mode="router", listen=listen, shared_memory=not args.no_shm, config_file=args.config)
+    config = SessionConfig(mode="router", listen=listen, shared_memory=not args.no_shm, config_file=args.zenoh_config)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

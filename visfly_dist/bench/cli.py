@@ -1,12 +1,18 @@
 """``visfly-dist bench``: one sub-command per benchmark, each in its own module.
 
-Each module exposes ``add_arguments(parser)`` and ``run(args) -> int``.
+Each module exposes ``add_arguments(parser)`` and ``run(args) -> int``. Every benchmark also takes
+``--zenoh-config FILE``, handed to all the sessions it opens (its own and its workers') as
+``$ZENOH_CONFIG``.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
+import os
+
+from visfly_dist.protocol.session import ZENOH_CONFIG_ENV, add_zenoh_config_argument, load_config_file, resolve_config_file
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
     "physics": ("visfly_dist.bench.physics", "batched dynamics: agent-steps/s, eager and compiled"),
@@ -22,4 +28,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=help_text, description=help_text)
         module.add_arguments(p)
-        p.set_defaults(func=module.run)
+        add_zenoh_config_argument(p)
+        p.set_defaults(func=functools.partial(_with_zenoh_config, module.run))
+
+
+def _with_zenoh_config(run, args: argparse.Namespace) -> int:
+    """Run a benchmark with ``--zenoh-config`` exported as ``$ZENOH_CONFIG`` (checked first)."""
+    if args.zenoh_config is not None:
+        path = resolve_config_file(args.zenoh_config)
+        load_config_file(path)
+        os.environ[ZENOH_CONFIG_ENV] = path
+    return run(args)

@@ -21,6 +21,7 @@ import sys
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.scene_worker.limits import WorkerLimits
+from visfly_dist.protocol.session import add_zenoh_config_argument
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(?P<port>\d{1,5})([?#].*)?$")
 
@@ -52,6 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="length of a scene key (default %(default)s, at most 256)")
     limits.add_argument("--max-pixels", type=int, default=WorkerLimits.max_pixels, metavar="N",
                         help="agents x cameras x pixels one step may render (default %(default)s)")
+    add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -76,7 +78,7 @@ def session_config(args: argparse.Namespace):
     if mode == "client" and listen:
         raise ConfigError(f"--listen {list(listen)} needs --mode peer: a Zenoh client does not listen")
     return SessionConfig(mode=mode, connect=connect, listen=listen, shared_memory=not args.no_shm,
-                         lease_ms=args.lease_ms)
+                         lease_ms=args.lease_ms, config_file=args.zenoh_config)
 
 
 def parent_gone(parent_pid: int, original_ppid: int) -> bool:

@@ -17,7 +17,9 @@ import argparse
 import json
 from pathlib import Path
 
+from visfly_dist.protocol.session import add_zenoh_config_argument
 from visfly_dist.training.config import parse_override
+from visfly_dist.training.train_cli import with_zenoh_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), help="renderer of local workers")
     parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
+    add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -50,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint)
     if not checkpoint.is_file():
         raise ConfigError(f"--checkpoint {str(checkpoint)!r} does not exist; pass a .zip written by 'visfly-dist train'")
-    overrides = dict(parse_override(item) for item in args.set)
+    overrides = with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config)
     pool = dict(workers=args.workers, connect=tuple(args.connect) or None, run_id=args.run_id, backend=args.backend)
     env = build_eval_env(args.task, args.num_envs, args.seed, find_run_config(checkpoint), overrides, pool)
     recorder = None

@@ -15,7 +15,19 @@ from __future__ import annotations
 
 import argparse
 
+from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
 from visfly_dist.training.config import BACKBONES, TrainConfig, parse_override
+
+
+def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
+    """``overrides`` with ``--zenoh-config`` (absolute, checked) in its ``pool`` map, when given."""
+    if zenoh_config is None:
+        return overrides
+    path = resolve_config_file(zenoh_config)
+    load_config_file(path)
+    pool = overrides.get("pool")
+    pool = dict(pool) if isinstance(pool, dict) else {}
+    return {**overrides, "pool": {**pool, "zenoh_config": path}}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
+    add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -68,7 +81,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         backbone=args.backbone,
         normalize=not args.no_normalize,
         progress=not args.quiet,
-        overrides=dict(parse_override(item) for item in args.set),
+        overrides=with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config),
     )
 
 
