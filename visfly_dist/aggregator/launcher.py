@@ -29,6 +29,7 @@ class WorkerLaunchSpec:
         shared_memory: ``False`` adds ``--no-shm``.
         lease_ms: the worker-side link lease (bounds hang detection).
         parent_pid: the worker exits when this process is gone (``None``: never).
+        threads: tracing threads of each worker (``None``: the worker's default).
         zenoh_config: absolute path of a Zenoh JSON5 config file (TLS, credentials), or ``None``.
     """
 
@@ -39,6 +40,7 @@ class WorkerLaunchSpec:
     shared_memory: bool = True
     lease_ms: int = 2000
     parent_pid: int | None = None
+    threads: int | None = None
     zenoh_config: str | None = None
 
     def argv(self, worker_id: str) -> list[str]:
@@ -53,6 +55,8 @@ class WorkerLaunchSpec:
             argv.append("--no-shm")
         if self.parent_pid is not None:
             argv += ["--parent-pid", str(self.parent_pid)]
+        if self.threads is not None:
+            argv += ["--threads", str(self.threads)]
         if self.zenoh_config is not None:
             argv += ["--zenoh-config", self.zenoh_config]
         return argv

@@ -153,7 +153,8 @@ class WorkerPool:
                 self._launch = WorkerLaunchSpec(
                     run_id=self.run_id, connect=workers_connect, scene_roots=self.config.scene_roots,
                     backend=self.config.backend, shared_memory=self.config.shared_memory,
-                    lease_ms=self.config.lease_ms, parent_pid=os.getpid(), zenoh_config=session_cfg.config_file)
+                    lease_ms=self.config.lease_ms, parent_pid=os.getpid(), zenoh_config=session_cfg.config_file,
+                    threads=max(1, len(os.sched_getaffinity(0)) // self.config.num_local_workers))
                 for _ in range(self.config.num_local_workers):
                     self.spawn_local()
         except BaseException:

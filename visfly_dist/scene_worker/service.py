@@ -39,7 +39,7 @@ from visfly_dist.protocol.messages import (
     Health, LoadScene, Request, SampleSpawn, StepRequest, UnloadScene, parse_request,
 )
 from visfly_dist.protocol.session import SessionConfig, open_session
-from visfly_dist.scene_worker.render_base import BACKEND_CHOICES
+from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, render_scenes
 from visfly_dist.scene_worker.limits import WorkerLimits
 from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
 from visfly_dist.scene_worker.render_raycast import default_tracer
@@ -389,7 +389,8 @@ class SceneWorker:
             if any(scene.cameras != cameras for scene in loaded):
                 raise ProtocolError("the scenes of one step request must carry the same cameras")
             with self._timer.time("render", timings):
-                parts = [_render(scene, item.poses) for item, scene in zip(request.scenes, loaded)]
+                parts = render_scenes([(scene.renderer, item.poses, scene.multi_agent)
+                                       for item, scene in zip(request.scenes, loaded)])
                 reply["images"] = {c.name: _concat([p[c.name] for p in parts], (0, *c.shape), c.dtype)
                                    for c in cameras}
         if request.query:
@@ -433,12 +434,6 @@ def _concat(parts: list[np.ndarray], empty_shape: tuple[int, ...], dtype: Any) -
     if len(parts) == 1:
         return parts[0]
     return np.concatenate(parts) if parts else np.zeros(empty_shape, dtype=dtype)
-
-
-def _render(scene: LoadedScene, poses: np.ndarray) -> dict[str, np.ndarray]:
-    if len(poses) == 0:
-        return {c.name: np.zeros((0, *c.shape), dtype=c.dtype) for c in scene.cameras}
-    return scene.renderer.render(poses, show_drones=scene.multi_agent)
 
 
 def _query(scene: LoadedScene, poses: np.ndarray, search_radius: float) -> dict[str, np.ndarray]:
