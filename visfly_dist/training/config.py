@@ -76,6 +76,8 @@ class TrainConfig:
         backbone: image backbone of the extractor.
         normalize: running normalisation of vector observations and of rewards (VecNormalize).
         progress: print progress lines.
+        overlap: collect the next rollout while PPO updates on the last one (policy lag of one
+            update, see :mod:`visfly_dist.training.overlap`); ``False`` is SB3's plain PPO.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
     """
 
@@ -102,6 +104,7 @@ class TrainConfig:
     backbone: str = "visfly-cnn"
     normalize: bool = True
     progress: bool = True
+    overlap: bool = True
     overrides: dict[str, Any] = field(default_factory=dict)
 
     def resolved(self) -> "TrainConfig":

@@ -39,6 +39,7 @@ from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.extractors import visfly_policy_kwargs
+from visfly_dist.training.overlap import OverlappedPPO
 
 
 @dataclass
@@ -94,8 +95,11 @@ def build_env(cfg: TrainConfig) -> VecEnv:
 
 
 def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
-    """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder."""
-    model = PPO(
+    """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
+
+    With ``cfg.overlap`` it is :class:`OverlappedPPO`: the next rollout is collected while PPO learns.
+    """
+    model = (OverlappedPPO if cfg.overlap else PPO)(
         "MultiInputPolicy",
         env,
         learning_rate=cfg.lr,
@@ -148,7 +152,8 @@ def train(cfg: TrainConfig) -> TrainResult:
             print(f"interrupted at {model.num_timesteps:,} steps; saving the model", file=sys.stderr, flush=True)
             success.on_training_end()
         final = save_checkpoint(model, run_dir / "final.zip")
-        result = TrainResult(run_dir, final, model.num_timesteps, interrupted, success.summary())
+        summary = {**success.summary(), **getattr(model, "phase_seconds", {})}
+        result = TrainResult(run_dir, final, model.num_timesteps, interrupted, summary)
     finally:
         env.close()
     s = result.summary

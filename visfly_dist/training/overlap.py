@@ -1,0 +1,160 @@
+"""PPO whose next rollout is collected while it learns from the last one (policy lag of one update).
+
+Plain PPO alternates: the scene workers sit idle while the learner updates, and the learner waits
+while the workers render. :class:`OverlappedPPO` keeps both busy, as asynchronous PPO (APPO) does:
+
+    rollout k (policy k-1 snapshot) ──────▶ update k (on rollout k)
+                                            rollout k+1 (snapshot of policy k, background thread)
+                                                      ──────▶ update k+1 (on rollout k+1) ...
+
+When an update starts, a frozen copy of the current policy (the *behaviour* policy) starts
+collecting the next rollout in a background thread, into a second buffer, while the update runs.
+The next update waits for that rollout and learns from it. Each sample's log-probability and value
+come from the behaviour policy, so PPO's clipped ratio accounts for the lag, which is exactly one
+update (``train/policy_lag_updates``). Torch releases the GIL inside its kernels and the env waits
+on the workers without the GIL, so the two threads overlap.
+
+Callbacks and episode statistics are replayed on the main thread when the rollout is taken in, so
+they see the same ``infos``/``dones`` sequence as with SB3's own ``collect_rollouts``.
+
+Attributes:
+    phase_seconds: ``rollout_s`` (collection, wherever it ran), ``update_s`` (gradient steps),
+        ``wait_s`` (the learner waiting for a rollout) since construction.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.buffers import DictRolloutBuffer, RolloutBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.utils import obs_as_tensor
+from stable_baselines3.common.vec_env import VecEnv
+
+
+class OverlappedPPO(PPO):
+    """SB3 PPO with rollout collection overlapped with the update (see the module docstring)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0, "wait_s": 0.0}
+        self._next_buffer: RolloutBuffer | None = None
+        self._worker: threading.Thread | None = None
+        self._collected: dict[str, Any] | None = None
+        self._behaviour: Any = None  # the frozen copy of the policy that collects the next rollout
+
+    def _excluded_save_params(self) -> list[str]:
+        return super()._excluded_save_params() + ["_next_buffer", "_worker", "_collected", "_behaviour", "phase_seconds"]
+
+    # ----- the two phases ---------------------------------------------------------------------
+
+    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, rollout_buffer: RolloutBuffer,
+                         n_rollout_steps: int) -> bool:
+        """Take in the rollout collected during the last update, or collect one now (the first)."""
+        if self._worker is None:
+            t0 = time.perf_counter()
+            ok = super().collect_rollouts(env, callback, rollout_buffer, n_rollout_steps)
+            self.phase_seconds["rollout_s"] += time.perf_counter() - t0
+            return ok
+        t0 = time.perf_counter()
+        self._worker.join()
+        self.phase_seconds["wait_s"] += time.perf_counter() - t0
+        self._worker = None
+        collected, self._collected = self._collected, None
+        assert collected is not None
+        if "error" in collected:
+            raise collected["error"]
+        self.rollout_buffer, self._next_buffer = self._next_buffer, self.rollout_buffer
+        self._last_obs = collected["last_obs"]
+        self._last_episode_starts = collected["episode_starts"]
+        self.phase_seconds["rollout_s"] += collected["seconds"]
+        return self._replay(callback, collected["steps"])
+
+    def train(self) -> None:
+        """Start collecting the next rollout with a snapshot of the policy, then update."""
+        remaining = self._total_timesteps - self.num_timesteps
+        if remaining > 0:
+            self._start_collection()
+        t0 = time.perf_counter()
+        super().train()
+        self.phase_seconds["update_s"] += time.perf_counter() - t0
+        self.logger.record("train/policy_lag_updates", 1 if remaining > 0 else 0)
+
+    def learn(self, *args: Any, **kwargs: Any) -> "OverlappedPPO":
+        try:
+            return super().learn(*args, **kwargs)
+        finally:
+            self.join()
+
+    def join(self) -> None:
+        """Wait for a background collection still running (end of training, or an error)."""
+        if self._worker is not None:
+            self._worker.join()
+            self._worker = None
+
+    # ----- background collection ----------------------------------------------------------------
+
+    def _start_collection(self) -> None:
+        if self._next_buffer is None:
+            buffer_class = DictRolloutBuffer if isinstance(self.rollout_buffer, DictRolloutBuffer) else RolloutBuffer
+            self._next_buffer = buffer_class(self.n_steps, self.observation_space, self.action_space, device=self.device,
+                                             gamma=self.gamma, gae_lambda=self.gae_lambda, n_envs=self.n_envs)
+        if self._behaviour is None:
+            self._behaviour = self.policy_class(self.observation_space, self.action_space, self.lr_schedule,
+                                                use_sde=self.use_sde, **self.policy_kwargs).to(self.device)
+            self._behaviour.set_training_mode(False)
+        self._behaviour.load_state_dict(self.policy.state_dict())
+        self._worker = threading.Thread(target=self._collect, args=(self._behaviour, self._next_buffer),
+                                        name="rollout", daemon=True)
+        self._worker.start()
+
+    def _collect(self, policy: Any, buffer: RolloutBuffer) -> None:
+        """SB3's rollout loop with ``policy``, recording infos for the main thread to replay."""
+        t0 = time.perf_counter()
+        try:
+            env = self.env
+            assert env is not None
+            obs, episode_starts = self._last_obs, self._last_episode_starts
+            buffer.reset()
+            steps = []
+            dones = episode_starts
+            for _ in range(self.n_steps):
+                with torch.no_grad():
+                    actions, values, log_probs = policy(obs_as_tensor(obs, self.device))
+                actions = actions.cpu().numpy()
+                clipped = np.clip(actions, self.action_space.low, self.action_space.high)
+                new_obs, rewards, dones, infos = env.step(clipped)
+                for idx, done in enumerate(dones):  # bootstrap truncated episodes, as SB3 does
+                    if done and infos[idx].get("terminal_observation") is not None \
+                            and infos[idx].get("TimeLimit.truncated", False):
+                        terminal = policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
+                        with torch.no_grad():
+                            rewards[idx] += self.gamma * policy.predict_values(terminal)[0].item()
+                buffer.add(obs, actions.reshape(-1, *self.action_space.shape), rewards, episode_starts, values,
+                           log_probs)
+                steps.append((infos, dones, rewards))
+                obs, episode_starts = new_obs, dones
+            with torch.no_grad():
+                last_values = policy.predict_values(obs_as_tensor(obs, self.device))
+            buffer.compute_returns_and_advantage(last_values=last_values, dones=dones)
+            self._collected = {"last_obs": obs, "episode_starts": episode_starts, "steps": steps,
+                               "seconds": time.perf_counter() - t0}
+        except BaseException as exc:  # re-raised on the main thread
+            self._collected = {"error": exc}
+
+    def _replay(self, callback: BaseCallback, steps: list[tuple[list[dict], np.ndarray, np.ndarray]]) -> bool:
+        """Feed the recorded steps to the callbacks and episode statistics, in order."""
+        callback.on_rollout_start()
+        for infos, dones, rewards in steps:
+            self.num_timesteps += self.n_envs
+            callback.update_locals({"infos": infos, "dones": dones, "rewards": rewards})
+            if not callback.on_step():
+                return False
+            self._update_info_buffer(infos, dones)
+        callback.on_rollout_end()
+        return True
