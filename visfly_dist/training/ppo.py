@@ -39,6 +39,7 @@ from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.extractors import visfly_policy_kwargs
+from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO
 
 
@@ -134,6 +135,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     """
     cfg = cfg.resolved().validate()
     torch.set_num_threads(cfg.threads)
+    keep_freed_memory()
     run_dir = Path(cfg.out)
     env = build_env(cfg)
     interrupted = False
