@@ -29,7 +29,7 @@ def one_env():
 def test_vector_view_properties(vec_env):
     view = vec_env.as_gymnasium()
     assert isinstance(view, VectorEnv) and view.num_envs == 2
-    assert view.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    assert view.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP
     assert view.single_observation_space == vec_env.observation_space
     assert view.single_action_space == vec_env.action_space
     assert view.action_space.shape == (2, 4)
@@ -37,7 +37,7 @@ def test_vector_view_properties(vec_env):
 
 
 def test_vector_view_reset_step_and_same_step_autoreset(vec_env):
-    view = vec_env.as_gymnasium()
+    view = vec_env.as_gymnasium(AutoresetMode.SAME_STEP)
     obs, info = view.reset(seed=5)
     assert view.observation_space.contains(obs) and info == {}
     again, _ = view.reset(seed=5)
@@ -76,3 +76,49 @@ def test_single_agent_view_returns_the_terminal_observation(one_env):
 def test_single_agent_view_needs_one_agent(vec_env):
     with pytest.raises(ConfigError, match="needs num_envs=1, got num_envs=2"):
         vec_env.as_gymnasium_env()
+
+
+def test_next_step_autoreset_returns_the_last_view_then_the_first(vec_env):
+    view = vec_env.as_gymnasium()
+    obs, _ = view.reset(seed=3)
+    for t in range(1, 4):
+        obs, reward, terminated, truncated, infos = view.step(view.action_space.sample())
+    assert truncated.all() and obs["step"][:, 0].tolist() == [3, 3]  # the last observation, as Gymnasium's NEXT_STEP
+    obs, reward, terminated, truncated, _ = view.step(view.action_space.sample())  # actions ignored: the reset step
+    assert obs["step"][:, 0].tolist() == [0, 0] and reward.tolist() == [0.0, 0.0]
+    assert not (terminated | truncated).any()
+    start = obs["state"][:, :3].copy()
+    obs, *_ = view.step(view.action_space.sample())
+    assert obs["step"][:, 0].tolist() == [1, 1] and not np.allclose(obs["state"][:, :3], start)
+
+
+def test_seed_lists_seed_every_sub_env_and_are_checked(vec_env):
+    view = vec_env.as_gymnasium()
+    a, _ = view.reset(seed=[1, 2])
+    assert view.np_random_seed is not None and view.np_random_seed >= 0
+    b, _ = view.reset(seed=[1, 2])
+    c, _ = view.reset(seed=[1, 3])  # the second seed matters too
+    np.testing.assert_array_equal(a["state"], b["state"])
+    assert not np.array_equal(a["state"], c["state"])
+    with pytest.raises(ValueError, match="one seed per sub-env: num_envs=2, got length 3"):
+        view.reset(seed=[1, 2, 3])
+
+
+def test_reset_mask_resets_only_the_masked_sub_envs(vec_env):
+    view = vec_env.as_gymnasium()
+    view.reset(seed=0)
+    view.step(view.action_space.sample())
+    obs, _ = view.reset(options={"reset_mask": np.array([False, True])})
+    assert obs["step"][:, 0].tolist() == [1, 0]
+    with pytest.raises(ValueError, match="reset_mask"):
+        view.reset(options={"reset_mask": np.array([False, False])})
+
+
+def test_gymnasium_vector_wrappers_accept_the_view(vec_env):
+    from gymnasium.wrappers.vector import FilterObservation, FlattenObservation
+
+    for wrapped in (FlattenObservation(vec_env.as_gymnasium()), FilterObservation(vec_env.as_gymnasium(), ["state"])):
+        obs, _ = wrapped.reset(seed=0)
+        for _ in range(4):
+            obs, *_ = wrapped.step(wrapped.action_space.sample())
+        assert wrapped.observation_space.contains(obs)

@@ -213,39 +213,45 @@ class DroneEnvBase(VecEnv):
 
     # ----- core step ----------------------------------------------------------------------------
 
-    def step_tensor(self, actions: torch.Tensor | np.ndarray) -> StepResult:
+    def step_tensor(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
         """Advance every agent one control step, keeping torch tensors (and gradients).
 
         Args:
             actions: ``(N, 4)`` in ``[-1, 1]``; values outside are clipped.
+            hold: ``(N,)`` bool: agents that stay where they are this step (their action is ignored,
+                their reward is 0 and their episode neither advances nor ends). Gymnasium's
+                NEXT_STEP autoreset uses it for the step that returns a reset agent's first view.
         """
         self._check_open()
         if self.frame is None:
             self.reset()
         with torch.set_grad_enabled(self.config.requires_grad):
-            return self._step(actions)
+            return self._step(actions, hold)
 
-    def _step(self, actions: torch.Tensor | np.ndarray) -> StepResult:
+    def _step(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
         t0 = time.perf_counter()
         actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
         if actions.shape != (self.num_envs, 4):
             raise ConfigError(f"actions of shape {tuple(actions.shape)} must be ({self.num_envs}, 4)")
+        held = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device) if hold is None \
+            else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
         self.actions = actions.clamp(-1.0, 1.0)
-        self.state = self.quad.step(self.state, self.actions)
+        stepped = self.quad.step(self.state, self.actions)
+        self.state = QuadState.where(held, self.state, stepped) if hold is not None else stepped
         t1 = time.perf_counter()
         self.frame = self._observe_and_prepare()
         t2 = time.perf_counter()
-        self.episode_step = self.episode_step + 1
+        self.episode_step = self.episode_step + (~held).long()
         lost = self.frame.lost
-        self.success = self.get_success() & ~lost
-        self.failure = self.get_failure() & ~lost & ~self.success
-        reward = self.get_reward()
+        self.success = self.get_success() & ~lost & ~held
+        self.failure = self.get_failure() & ~lost & ~self.success & ~held
+        reward = torch.where(held, 0.0, self.get_reward()) if hold is not None else self.get_reward()
         self.episode_return = self.episode_return + reward.detach()
         observation = self._observation()
         self.update_task_state()
 
         terminated = self.success | self.failure
-        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
+        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated & ~held
         terminated, truncated = self.expand_resets(terminated, truncated)
         swapped = torch.as_tensor(self.aggregator.take_switched(), device=self.device)
         if bool(swapped.any()):
@@ -357,6 +363,17 @@ class DroneEnvBase(VecEnv):
         self.reset_infos = [{} for _ in range(self.num_envs)]
         return self.to_numpy(obs)
 
+    def reset_some(self, mask: torch.Tensor | np.ndarray) -> dict[str, np.ndarray]:
+        """Reset only the agents in ``mask`` (``(N,)`` bool); the numpy observation of every agent."""
+        self._check_open()
+        mask = torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
+        if mask.shape != (self.num_envs,):
+            raise ConfigError(f"reset mask of shape {tuple(mask.shape)} must be ({self.num_envs},)")
+        if self.frame is None:
+            return self.reset()
+        with torch.set_grad_enabled(self.config.requires_grad):
+            return self.to_numpy(self._reset_agents(mask, self._observation()))
+
     def _reseed(self, seed: int) -> None:
         self.generator.manual_seed(seed)
         self.aggregator.reseed(seed)
@@ -446,11 +463,13 @@ class DroneEnvBase(VecEnv):
 
     # ----- other views ---------------------------------------------------------------------------
 
-    def as_gymnasium(self):
-        """This env as a ``gymnasium.vector.VectorEnv`` (SAME_STEP autoreset); shares this env."""
+    def as_gymnasium(self, autoreset_mode: Any = None):
+        """This env as a ``gymnasium.vector.VectorEnv`` (NEXT_STEP autoreset unless told otherwise); shares this env."""
+        from gymnasium.vector import AutoresetMode
+
         from visfly_dist.client.gym_view import GymnasiumVectorView
 
-        return GymnasiumVectorView(self)
+        return GymnasiumVectorView(self, autoreset_mode or AutoresetMode.NEXT_STEP)
 
     def as_gymnasium_env(self):
         """A single-agent ``gymnasium.Env`` over this env (needs ``num_envs == 1``), e.g. for ``check_env``."""

@@ -1,10 +1,8 @@
 """Gymnasium views of a :class:`~visfly_dist.client.env_base.DroneEnvBase` (which is an SB3 VecEnv).
 
-- :class:`GymnasiumVectorView`: a ``gymnasium.vector.VectorEnv`` with
-  ``metadata["autoreset_mode"] == AutoresetMode.SAME_STEP``: a done agent's returned observation is
-  already the first of its next episode; its last one is in ``infos["final_obs"][i]`` and its step
-  info in ``infos["final_info"]`` (masks ``infos["_final_obs"]``, ``infos["_final_info"]``). This is
-  SB3's auto-reset semantics under Gymnasium's names.
+- :class:`GymnasiumVectorView`: a ``gymnasium.vector.VectorEnv``, NEXT_STEP autoreset by default
+  (what Gymnasium's own vector wrappers accept), SAME_STEP on request (SB3's semantics under
+  Gymnasium's names: ``infos["final_obs"]`` and ``infos["final_info"]``).
 - :class:`SingleAgentView`: a ``gymnasium.Env`` over a one-agent env, for tools that take a single
   env (``gymnasium.utils.env_checker.check_env``, SB3's ``check_env``).
 
@@ -15,8 +13,11 @@ from __future__ import annotations
 
 from typing import Any
 
+import secrets
+
 import gymnasium
 import numpy as np
+import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
@@ -31,39 +32,95 @@ def _split_info(info: dict[str, Any]) -> tuple[dict[str, Any], bool]:
 
 
 class GymnasiumVectorView(VectorEnv):
-    """The env as a Gymnasium vector env (SAME_STEP autoreset)."""
+    """The env as a Gymnasium vector env.
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    Args:
+        env: the env (shared: closing the view closes it).
+        autoreset_mode: ``NEXT_STEP`` (Gymnasium's default, accepted by its vector wrappers such as
+            ``FlattenObservation``): a done agent returns its last observation; on the next step
+            it is reset (its action ignored) and returns its first one, reward 0, not done.
+            ``SAME_STEP``: the returned observation is already the next episode's first, the last
+            one is in ``infos["final_obs"]`` (SB3's semantics under Gymnasium's names).
 
-    def __init__(self, env: Any) -> None:
+    ``reset(seed=...)`` takes an int or one seed per agent (a list of length ``num_envs``; ``None``
+    entries draw fresh entropy). The agents share one batched state and generator, so the list is
+    combined into one seed: the same list gives the same episodes. ``options={"reset_mask": m}``
+    resets only the agents where the bool array ``m`` is True.
+    """
+
+    def __init__(self, env: Any, autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP) -> None:
+        if autoreset_mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+            raise ConfigError(f"autoreset_mode={autoreset_mode!r} must be AutoresetMode.NEXT_STEP or SAME_STEP")
         self.env = env
+        self.metadata = {"autoreset_mode": autoreset_mode, "render_modes": []}
         self.num_envs = env.num_envs
         self.single_observation_space = env.observation_space
         self.single_action_space = env.action_space
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.render_mode = None
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: reset on the coming step
 
     def reset(self, *, seed: int | list[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        """Reset every agent; ``seed`` (an int, or a list whose first entry is used) reseeds the env."""
+        """Reset every agent, or those of ``options["reset_mask"]``; see the class docstring for ``seed``."""
+        mask = None if options is None else options.get("reset_mask")
+        if mask is not None:
+            mask = np.asarray(mask)
+            if mask.dtype != np.bool_ or mask.shape != (self.num_envs,) or not mask.any():
+                raise ValueError(f"options['reset_mask'] must be a bool array of shape ({self.num_envs},) with at "
+                                 f"least one True, got dtype {mask.dtype} shape {mask.shape}")
         if isinstance(seed, (list, tuple)):
-            seed = seed[0]
+            if len(seed) != self.num_envs:
+                raise ValueError(f"a seed list must have one seed per sub-env: num_envs={self.num_envs}, "
+                                 f"got length {len(seed)}")
+            entropy = [int(s) if s is not None else secrets.randbits(63) for s in seed]
+            seed = int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0] >> np.uint64(1))
         if seed is not None:
+            self._np_random, self._np_random_seed = np.random.default_rng(int(seed)), int(seed)
             self.env.seed(int(seed))
-        return self.env.reset(), {}
+        if mask is None:
+            self._autoreset[:] = False
+            return self.env.reset(), {}
+        self._autoreset[mask] = False
+        if seed is not None:
+            self.env._reseed(int(seed))
+        return self.env.reset_some(mask), {}
 
     def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        obs, rewards, dones, sb3_infos = self.env.step(np.asarray(actions, dtype=np.float32))
-        truncated = np.zeros(self.num_envs, dtype=bool)
-        infos: dict[str, Any] = {}
-        for i, sb3_info in enumerate(sb3_infos):
-            info, truncated[i] = _split_info(sb3_info)
-            if dones[i]:
-                infos = self._add_info(infos, {"final_obs": sb3_info["terminal_observation"], "final_info": info}, i)
-            infos = self._add_info(infos, info, i)
-        terminated = np.asarray(dones, dtype=bool) & ~truncated
-        return obs, np.asarray(rewards, dtype=np.float64), terminated, truncated, infos
+        env = self.env
+        hold = None
+        if self.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP and self._autoreset.any():
+            hold = torch.as_tensor(self._autoreset, device=env.device)
+        obs_t, reward_t, terminated_t, truncated_t, info = env.step_tensor(
+            torch.as_tensor(np.asarray(actions, dtype=np.float32), device=env.device), hold=hold)
+        obs = env.to_numpy(obs_t)
+        rewards = reward_t.detach().cpu().numpy().astype(np.float64)
+        terminated, truncated = terminated_t.cpu().numpy(), truncated_t.cpu().numpy()
+        done = terminated | truncated
+        infos = self._step_infos(info)
+        if done.any():
+            final = env.to_numpy(info["terminal_observation"])
+            if self.metadata["autoreset_mode"] == AutoresetMode.NEXT_STEP:
+                for key, value in obs.items():  # the last observation now, the first one next step
+                    value[done] = final[key][done]
+            else:
+                infos["final_obs"] = np.array([{k: v[i] for k, v in final.items()} if done[i] else None
+                                               for i in range(self.num_envs)], dtype=object)
+                infos["_final_obs"] = done.copy()
+                infos["final_info"] = {k: v for k, v in infos.items() if not k.startswith("final")}
+                infos["_final_info"] = done.copy()
+        self._autoreset = done.copy()
+        return obs, rewards, terminated, truncated, infos
+
+    def _step_infos(self, info: dict[str, Any]) -> dict[str, Any]:
+        """Per-agent flags of the step as Gymnasium vector infos (``key`` and its ``_key`` mask)."""
+        out: dict[str, Any] = {}
+        for key, name in (("success", "is_success"), ("collision", "collision"), ("out_of_bounds", "out_of_bounds"),
+                          ("lost", "lost"), ("swapped", "swapped")):
+            out[name] = info[key].detach().cpu().numpy().astype(bool)
+            out[f"_{name}"] = np.ones(self.num_envs, dtype=bool)
+        return out
 
     def close_extras(self, **kwargs: Any) -> None:
         self.env.close()
