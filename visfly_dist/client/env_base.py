@@ -62,6 +62,18 @@ class Spawn:
 
 
 @dataclass
+class _InFlight:
+    """A step that was sent and not yet taken in."""
+
+    ticket: Any
+    group: torch.Tensor
+    held: torch.Tensor
+    spawn_agents: np.ndarray
+    started: float
+    physics_s: float
+
+
+@dataclass
 class StepResult:
     """What ``step_tensor`` returns (unpacks like a Gymnasium step).
 
@@ -145,6 +157,10 @@ class DroneEnvBase(VecEnv):
         self._next_pose[:, 3] = 1.0
         self._prepared = np.zeros(n, dtype=bool)
         self._prepared_obs = empty_observation(self.aggregator.cameras, n)
+        self._switched = torch.zeros(n, dtype=torch.bool, device=self.device)  # scene swapped, not yet reported
+        self._in_flight: list[_InFlight] = []
+        self.step_mask = torch.ones(n, dtype=torch.bool, device=self.device)
+        self.agents_per_scene = config.agents_per_scene
         self._pending_actions: torch.Tensor | None = None
         self._t0 = time.time()
 
@@ -191,7 +207,9 @@ class DroneEnvBase(VecEnv):
 
         Called exactly once per step, after ``get_success``, ``get_failure``, ``get_reward`` and
         ``get_observation``: those hooks must be pure (calling one twice gives the same result and
-        changes nothing), so that state advances in this one place.
+        changes nothing), so that state advances in this one place. With :meth:`send`/:meth:`recv`
+        only the agents of ``self.step_mask`` moved; state derived from the agents' own state is
+        unchanged for the others, and event counters must advance only where ``step_mask`` is set.
         """
 
     # ----- helpers for tasks --------------------------------------------------------------------
@@ -229,66 +247,135 @@ class DroneEnvBase(VecEnv):
             return self._step(actions, hold)
 
     def _step(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
-        t0 = time.perf_counter()
+        everyone = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
+        return self._finish(self._send(self._actions(actions, self.num_envs), everyone, hold))
+
+    def _actions(self, actions: torch.Tensor | np.ndarray, k: int) -> torch.Tensor:
         actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
-        if actions.shape != (self.num_envs, 4):
-            raise ConfigError(f"actions of shape {tuple(actions.shape)} must be ({self.num_envs}, 4)")
-        held = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device) if hold is None \
-            else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
-        self.actions = actions.clamp(-1.0, 1.0)
-        stepped = self.quad.step(self.state, self.actions)
-        self.state = QuadState.where(held, self.state, stepped) if hold is not None else stepped
+        if actions.shape != (k, 4):
+            raise ConfigError(f"actions of shape {tuple(actions.shape)} must be ({k}, 4)")
+        return actions.clamp(-1.0, 1.0)
+
+    def _send(self, actions: torch.Tensor, group: torch.Tensor, hold: torch.Tensor | None) -> _InFlight:
+        """Advance the agents of ``group`` (``(N,)`` bool) and put their observation on the wire."""
+        t0 = time.perf_counter()
+        held = torch.zeros_like(group) if hold is None else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
+        moving = group & ~held
+        stepped = self.quad.step(self.state, actions)
+        self.state = stepped if bool(moving.all()) else QuadState.where(moving, stepped, self.state)
+        self.actions = actions if bool(group.all()) else torch.where(group[:, None], actions, self.actions)
         t1 = time.perf_counter()
-        self.frame = self._observe_and_prepare()
-        t2 = time.perf_counter()
-        self.episode_step = self.episode_step + (~held).long()
-        lost = self.frame.lost
-        self.success = self.get_success() & ~lost & ~held
-        self.failure = self.get_failure() & ~lost & ~self.success & ~held
-        reward = torch.where(held, 0.0, self.get_reward()) if hold is not None else self.get_reward()
+        members = group.cpu().numpy()
+        agents = np.flatnonzero(members)
+        spawn_agents = np.flatnonzero(~self._prepared & members)
+        poses = self.state.pose().detach().cpu().numpy()
+        ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
+                                        spawn_poses=self._next_pose[spawn_agents], spawn_agents=spawn_agents)
+        return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0)
+
+    def _finish(self, flight: _InFlight) -> StepResult:
+        """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
+        rows of ``flight.group`` are this step's (the others are zero / False)."""
+        t0 = time.perf_counter()
+        obs, spawn_obs = self.aggregator.collect(flight.ticket)
+        if len(flight.spawn_agents):
+            ok = ~spawn_obs.lost
+            self._store_prepared(spawn_obs, np.flatnonzero(ok), flight.spawn_agents[ok])
+        self.frame_timings = dict(obs.timings)
+        rows = self._frame(obs)
+        everyone = len(flight.ticket.agents) == self.num_envs
+        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows)
+        t1 = time.perf_counter()
+        group, held = flight.group, flight.held
+        live = group & ~held
+        self.step_mask = live
+        self.episode_step = self.episode_step + live.long()
+        lost = self.frame.lost & group
+        self.success = self.get_success() & ~lost & live
+        self.failure = self.get_failure() & ~lost & ~self.success & live
+        reward = self.get_reward()
+        if not bool(live.all()):
+            reward = torch.where(live, reward, torch.zeros_like(reward))
         self.episode_return = self.episode_return + reward.detach()
         observation = self._observation()
         self.update_task_state()
 
         terminated = self.success | self.failure
-        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated & ~held
+        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated & live
         terminated, truncated = self.expand_resets(terminated, truncated)
-        swapped = torch.as_tensor(self.aggregator.take_switched(), device=self.device)
+        self._switched |= torch.as_tensor(self.aggregator.take_switched(), device=self.device)
+        swapped = self._switched & group
         if bool(swapped.any()):
+            self._switched &= ~group
             self.bounds = self._agent_bounds()
             self._prepared &= ~swapped.cpu().numpy()  # their next start lies in the new scene
             self._draw_next_starts(swapped.nonzero().squeeze(1))
         swapped = swapped & ~terminated
         truncated = truncated | swapped
         info = {"terminal_observation": observation, "success": self.success, "lost": lost,
-                "collision": self.frame.collision, "out_of_bounds": self.out_of_bounds(),
+                "collision": self.frame.collision & group, "out_of_bounds": self.out_of_bounds() & group,
                 "swapped": swapped, "episode_return": self.episode_return,
                 "episode_length": self.episode_step}
         done = terminated | truncated
         if bool(done.any()):
             self.aggregator.note_resets(done.nonzero().squeeze(1).cpu().numpy())
             observation = self._reset_agents(done, observation)
-        self.step_timings = {**self.frame_timings, "physics_s": t1 - t0, "observe_s": t2 - t1,
-                             "total_s": time.perf_counter() - t0}
+        self.step_timings = {**self.frame_timings, "physics_s": flight.physics_s,
+                             "observe_s": self.frame_timings.get("total_s", t1 - t0),
+                             "total_s": time.perf_counter() - flight.started}
         return StepResult(observation, reward, terminated, truncated, info)
+
+    # ----- asynchronous stepping (EnvPool-style) --------------------------------------------------
+
+    def send(self, actions: torch.Tensor | np.ndarray, env_ids: torch.Tensor | np.ndarray) -> None:
+        """Step the agents ``env_ids`` with ``actions`` (``(k, 4)``) and return at once.
+
+        Several groups may be in flight (disjoint ``env_ids``); :meth:`recv` returns whichever is
+        ready first. Meanwhile the caller can compute the next actions of another group, so the
+        learner and the scene workers work at the same time (and a network round trip is hidden).
+        In multi-agent scenes a group must hold whole teams (drones see those of their request).
+        """
+        self._check_open()
+        if self.frame is None:
+            self.reset()
+        ids = torch.as_tensor(np.asarray(env_ids), dtype=torch.long, device=self.device).reshape(-1)
+        if ids.numel() == 0 or int(ids.min()) < 0 or int(ids.max()) >= self.num_envs or len(set(ids.tolist())) != len(ids):
+            raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {ids.tolist()[:10]}")
+        group = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        group[ids] = True
+        busy = [f.group for f in self._in_flight]
+        if any(bool((g & group).any()) for g in busy):
+            raise ConfigError("send(): some env_ids are still in flight; recv() them first")
+        if self.agents_per_scene > 1 and self.config.multi_agent:
+            teams = group.view(-1, self.agents_per_scene)
+            if bool((teams.any(dim=1) & ~teams.all(dim=1)).any()):
+                raise ConfigError(f"send(): env_ids must hold whole teams of {self.agents_per_scene} agents")
+        full = self.actions.detach().clone()
+        full[ids] = self._actions(actions, len(ids))
+        with torch.set_grad_enabled(self.config.requires_grad):
+            self._in_flight.append(self._send(full, group, None))
+
+    def recv(self, timeout_s: float | None = None) -> tuple[StepResult, torch.Tensor]:
+        """The step of the first group whose observations are in: its rows only, and its env ids.
+
+        Raises:
+            ConfigError: nothing was sent.
+        """
+        if not self._in_flight:
+            raise ConfigError("recv() without a send() in flight")
+        i = self.aggregator.wait_any([f.ticket for f in self._in_flight], timeout_s)
+        flight = self._in_flight.pop(0 if i is None else i)  # on timeout, the oldest (its collect is bounded)
+        with torch.set_grad_enabled(self.config.requires_grad):
+            result = self._finish(flight)
+        ids = flight.group.nonzero().squeeze(1)
+        pick = {k: v[ids] for k, v in result.info.items() if k != "terminal_observation"}
+        pick["terminal_observation"] = {k: v[ids] for k, v in result.info["terminal_observation"].items()}
+        return StepResult({k: v[ids] for k, v in result.observation.items()}, result.reward[ids],
+                          result.terminated[ids], result.truncated[ids], pick), ids
 
     def expand_resets(self, terminated: torch.Tensor, truncated: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Hook: end further episodes because of these (teams end together in multi-agent tasks)."""
         return terminated, truncated
-
-    def _observe_and_prepare(self) -> SensorFrame:
-        """One round trip: every agent's view, plus the first view of the next episode of the
-        agents whose next start is not rendered yet (kept until they reset)."""
-        spawn_agents = np.flatnonzero(~self._prepared)
-        poses = self.state.pose().detach().cpu().numpy()
-        spawn_poses = self._next_pose[spawn_agents]
-        ticket = self.aggregator.submit(poses, spawn_poses=spawn_poses, spawn_agents=spawn_agents)
-        obs, spawn_obs = self.aggregator.collect(ticket)
-        if len(spawn_agents):
-            ok = ~spawn_obs.lost
-            self._store_prepared(spawn_obs, np.flatnonzero(ok), spawn_agents[ok])
-        self.frame_timings = dict(obs.timings)
-        return self._frame(obs)
 
     def _frame(self, obs: Any) -> SensorFrame:
         return SensorFrame.from_observation(obs, self.device, self._image_noise, self.generator,
