@@ -188,3 +188,37 @@ class DelayProxy:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m visfly_dist.bench.proxy --target HOST:PORT --delay-ms D``: run a proxy in its own
+    process (so its threads never compete with the measured process for the GIL) until SIGTERM/SIGINT.
+
+    Prints ``delay proxy listening on tcp/HOST:PORT`` once it accepts connections, and exits by
+    itself when its parent process is gone.
+    """
+    import argparse
+    import os
+    import signal
+
+    parser = argparse.ArgumentParser(prog="python -m visfly_dist.bench.proxy", description=__doc__.splitlines()[0])
+    parser.add_argument("--target", required=True, metavar="HOST:PORT", help="where connections are forwarded")
+    parser.add_argument("--delay-ms", type=float, required=True, help="added round trip, ms")
+    parser.add_argument("--port", type=int, default=0, help="port to listen on (0: a free one)")
+    args = parser.parse_args(argv)
+    host, sep, port = args.target.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ConfigError(f"--target {args.target!r} must look like HOST:PORT, e.g. 127.0.0.1:7447")
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    parent = os.getppid()
+    with DelayProxy((host, int(port)), args.delay_ms, port=args.port) as proxy:
+        print(f"delay proxy listening on {proxy.endpoint}", flush=True)
+        while not stop.wait(0.5) and os.getppid() == parent:
+            pass
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,8 +1,9 @@
 """Remote scene workers behind an added network delay, on this host, for the latency benchmarks.
 
 The trainer's aggregator listens on a loopback TCP port ``P`` (``PoolConfig(listen=(tcp P,),
-num_local_workers=0, shared_memory=False)``); a :class:`~visfly_dist.bench.proxy.DelayProxy`
-forwards to ``P``; and ``visfly-dist worker --connect tcp/127.0.0.1:<proxy port> --no-shm``
+num_local_workers=0, shared_memory=False)``); a :class:`~visfly_dist.bench.proxy.DelayProxy`, in a
+process of its own so that its threads take no GIL time from the measured process, forwards to
+``P``; and ``visfly-dist worker --connect tcp/127.0.0.1:<proxy port> --no-shm``
 processes are started pointed at the proxy, exactly as a user starts workers on other hosts. Every
 byte between the aggregator and its workers then pays the proxy's delay.
 
@@ -14,6 +15,7 @@ shows up as a listening socket in ``/proc/net/tcp``.
 from __future__ import annotations
 
 import os
+import select
 import shutil
 import signal
 import socket
@@ -25,7 +27,6 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from visfly_dist.bench.proxy import DelayProxy
 from visfly_dist.errors import ConfigError
 
 _TCP_LISTEN = "0A"
@@ -53,6 +54,33 @@ def is_listening(port: int) -> bool:
     return False
 
 
+def start_proxy(target_port: int, delay_ms: float, timeout_s: float = 30.0) -> tuple[subprocess.Popen, str]:
+    """Start ``python -m visfly_dist.bench.proxy`` forwarding to ``127.0.0.1:target_port``.
+
+    Returns:
+        The process and the proxy's endpoint ``tcp/127.0.0.1:PORT``.
+
+    Raises:
+        ConfigError: a bad delay (the proxy's own message).
+        RuntimeError: the proxy did not report its port within ``timeout_s``.
+    """
+    if not isinstance(delay_ms, (int, float)) or not 0 <= delay_ms <= 60_000:
+        raise ConfigError(f"delay_ms={delay_ms!r} must be a number of milliseconds in [0, 60000]")
+    argv = [sys.executable, "-m", "visfly_dist.bench.proxy", "--target", f"127.0.0.1:{target_port}",
+            "--delay-ms", str(delay_ms)]
+    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+    ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
+    line = proc.stdout.readline().decode(errors="replace").strip() if ready else ""
+    prefix = "delay proxy listening on "
+    if not line.startswith(prefix):
+        proc.kill()
+        rest = proc.communicate()[0].decode(errors="replace")
+        proc.stdout.close()
+        raise RuntimeError(f"the delay proxy did not start within {timeout_s} s: {line}{rest}"[-2000:])
+    return proc, line[len(prefix):]
+
+
 class RemoteWorkers:
     """``count`` worker processes reaching the trainer through a :class:`DelayProxy`.
 
@@ -75,9 +103,9 @@ class RemoteWorkers:
         self.backend = backend
         self.run_id = run_id or f"bench{os.getpid()}x{int(time.time() * 1000) % 100000}"
         self.listen_port = free_port()
-        self.proxy = DelayProxy(("127.0.0.1", self.listen_port), delay_ms)
         self._log_dir = tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")
         self._processes: list[subprocess.Popen] = []
+        self._proxy, self.proxy_endpoint = start_proxy(self.listen_port, delay_ms)
         self._closed = threading.Event()
         self._start_timeout_s = start_timeout_s
         self._starter = threading.Thread(target=self._start_when_listening, daemon=True, name="bench-remote-start")
@@ -91,7 +119,7 @@ class RemoteWorkers:
     def argv(self, index: int) -> list[str]:
         """The command line of worker ``index``: a remote worker pointed at the proxy."""
         return [sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", self.run_id, "--connect",
-                self.proxy.endpoint, "--no-shm", "--backend", self.backend, "--worker-id", f"remote-{index}",
+                self.proxy_endpoint, "--no-shm", "--backend", self.backend, "--worker-id", f"remote-{index}",
                 "--parent-pid", str(os.getpid())]
 
     @property
@@ -136,7 +164,13 @@ class RemoteWorkers:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
-        self.proxy.close()
+        self._proxy.terminate()
+        try:
+            self._proxy.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            self._proxy.kill()
+            self._proxy.wait()
+        self._proxy.stdout.close()
         shutil.rmtree(self._log_dir, ignore_errors=True)
 
     def __enter__(self) -> "RemoteWorkers":
