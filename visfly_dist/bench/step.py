@@ -266,7 +266,7 @@ def bench_step(agents: int = 100, workers: Sequence[int] = (1, 2), res: int = 64
             env = make_step_env(task, agents, w, res, backend, shm, scenes)
             try:
                 startup = time.perf_counter() - t0
-                rows.append(_measure(env, steps, warmup) | {
+                rows.append(measure_steps(env, steps, warmup) | {
                     "task": task, "agents": env.num_envs, "scenes": env.config.num_scenes, "workers": w, "shm": shm,
                     "backend": backend, "res": res, "startup_s": round(startup, 2)})
             finally:
@@ -329,7 +329,7 @@ def _measure_row(spec: RowSpec, steps: int, warmup: int, workers: int, res: int,
             raise
         try:
             startup = time.perf_counter() - t0
-            row = _measure(env, steps, warmup)
+            row = measure_steps(env, steps, warmup)
         finally:
             env.close()
     finally:
@@ -345,7 +345,12 @@ def _check_counts(steps: int, warmup: int) -> None:
         raise ConfigError(f"steps={steps!r} must be an int >= 1 and warmup={warmup!r} an int >= 0")
 
 
-def _measure(env: Any, steps: int, warmup: int) -> dict[str, Any]:
+def measure_steps(env: Any, steps: int, warmup: int) -> dict[str, Any]:
+    """Reset ``env``, take ``warmup`` untimed steps, then time ``steps`` steps of a noisy hover policy.
+
+    Stages come from ``env.step_timings`` when the env reported them during the warm-up, else from
+    :func:`watch_stages`; the row's ``timings`` says which (``env`` or ``wrapped``).
+    """
     n = env.num_envs
     rng = np.random.default_rng(0)
     hover = env.quad.hover_action().detach().cpu().numpy()
