@@ -30,8 +30,8 @@ import shutil
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from visfly_dist.errors import ConfigError
 
@@ -190,8 +190,11 @@ def default_workers(task: str) -> int:
 
 
 def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers: int | None = None,
-               seed: int = 0) -> dict[str, Any]:
+               seed: int = 0, changes: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """One default training run of ``timesteps`` env steps; ``delay_ms``: remote workers behind that delay.
+
+    ``changes`` are ``TrainConfig`` fields to change from the default (the figures are meant for the
+    default; tests use it for tiny sizes).
 
     Returns:
         The row: ``task, delay_ms, workers, timesteps, env_steps_per_s, rollout_env_steps_per_s,
@@ -212,6 +215,8 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
     cfg = TrainConfig(task=task, timesteps=timesteps, seed=seed, out=out_dir, checkpoint_every=0, progress=False,
                       workers=count if remote is None else 0, run_id=remote.run_id if remote else None,
                       overrides=overrides)
+    if changes:
+        cfg = replace(cfg, **changes)
     threads = torch.get_num_threads()
     monitor = CpuMonitor()
     printed = io.StringIO()
@@ -259,9 +264,11 @@ def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: Lo
 
 
 def bench_train(task: str = "navigation", timesteps: int = DEFAULT_TIMESTEPS, delays: Sequence[float] | None = None,
-                workers: int | None = None, seed: int = 0,
+                workers: int | None = None, seed: int = 0, *, changes: Mapping[str, Any] | None = None,
                 log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run the default training loop once per delay (``None``: once, with local workers).
+
+    ``changes``: ``TrainConfig`` fields to change from the default (see :func:`train_once`).
 
     Returns:
         ``{"rows": [...], "ratios": [...]}``; ratios divide each delayed run's whole-loop and
@@ -276,7 +283,7 @@ def bench_train(task: str = "navigation", timesteps: int = DEFAULT_TIMESTEPS, de
         if log:
             where = "local workers" if delay is None else f"remote workers behind {delay:g} ms added round trip"
             log(f"[bench train] {task}: {timesteps:,} env steps, {where}")
-        rows.append(train_once(task, timesteps, delay, workers, seed))
+        rows.append(train_once(task, timesteps, delay, workers, seed, changes))
     ratios = []
     base = next((r for r in rows if r["delay_ms"] == 0), None)
     for r in rows:
