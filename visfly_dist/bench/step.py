@@ -135,6 +135,13 @@ class RowSpec:
     what: str = ""
 
 
+ROW_STARTUP_TIMEOUT_S = 900.0
+"""Scene-load deadline of the named rows: a worker loads its 32 to 128 scenes in one request, which
+takes minutes on a loaded 2-core machine (the default 60 s drops every worker, again and again)."""
+
+ROW_STEP_TIMEOUT_S = 120.0
+"""Step deadline of the named rows: a step of 1,024 agents renders 512 frames per worker."""
+
 NO_RESETS = 1_000_000
 """``max_episode_steps`` of the no-reset row: longer than any measurement."""
 
@@ -187,12 +194,14 @@ def expand_rows(names: Sequence[str]) -> list[RowSpec]:
 
 def make_step_env(task: str, agents: int, workers: int, res: int, backend: str, shm: bool,
                   scenes: int | None, seed: int = 0, *, pool: Callable[[Any], Any] | None = None,
-                  **env_kwargs: Any) -> Any:
+                  rows_timeouts: bool = False, **env_kwargs: Any) -> Any:
     """The task's env with ``agents`` agents in ``scenes`` scenes (default: one per worker), ``workers``
     local workers of ``backend``, and its cameras at ``res`` x ``res``.
 
     With ``scenes`` given, ``agents`` is rounded down to a multiple of it. ``pool``, if given, turns
-    the resulting ``PoolConfig`` into the one to use (remote workers); ``env_kwargs`` go to ``make_env``.
+    the resulting ``PoolConfig`` into the one to use (remote workers); ``rows_timeouts`` raises the
+    pool's deadlines to :data:`ROW_STARTUP_TIMEOUT_S` / :data:`ROW_STEP_TIMEOUT_S`; ``env_kwargs``
+    go to ``make_env``.
     """
     from visfly_dist import make_env
     from visfly_dist.tasks import task_class
@@ -205,6 +214,9 @@ def make_step_env(task: str, agents: int, workers: int, res: int, backend: str, 
     cameras = tuple(dataclasses.replace(c, width=res, height=res) for c in defaults.cameras)
     pool_cfg = dataclasses.replace(defaults.pool, num_local_workers=workers, backend=backend, shared_memory=shm,
                                    min_workers=workers)
+    if rows_timeouts:
+        pool_cfg = dataclasses.replace(pool_cfg, startup_timeout_s=max(pool_cfg.startup_timeout_s, ROW_STARTUP_TIMEOUT_S),
+                                       step_timeout_s=max(pool_cfg.step_timeout_s, ROW_STEP_TIMEOUT_S))
     if pool is not None:
         pool_cfg = pool(pool_cfg)
     return make_env(task, num_envs=per_scene * scenes, agents_per_scene=per_scene, cameras=cameras, pool=pool_cfg,
@@ -321,7 +333,7 @@ def _measure_row(spec: RowSpec, steps: int, warmup: int, workers: int, res: int,
         t0 = time.perf_counter()
         try:
             env = make_step_env(task, spec.agents, workers, res, backend, remote is None, spec.scenes,
-                                pool=remote.pool if remote else None, **kwargs)
+                                pool=remote.pool if remote else None, rows_timeouts=True, **kwargs)
         except Exception as exc:
             if remote is not None:
                 raise RuntimeError(f"{spec.name}: the env did not start with remote workers; their logs:\n"
