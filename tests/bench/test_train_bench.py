@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import os
+import shlex
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -56,6 +59,23 @@ def test_process_cpu_of_this_process_and_of_a_missing_one():
     spin = sum(i * i for i in range(300_000))
     assert spin and process_cpu_s(os.getpid()) > 0
     assert process_cpu_s(2 ** 22 + 7) is None
+
+
+def test_worker_children_finds_workers_started_through_a_launcher():
+    """A process whose argv reads like a worker, started by an intermediate shell, is found; the
+    shell itself is not."""
+    fake_worker = f"{shlex.quote(sys.executable)} -c 'import time; time.sleep(60)' visfly_dist.cli worker"
+    launcher = subprocess.Popen(["sh", "-c", f"{fake_worker}; true"])
+    try:
+        deadline = time.monotonic() + 20
+        while not (found := worker_children()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(found) == 1 and found[0] != launcher.pid
+        assert process_cpu_s(found[0]) is not None
+    finally:
+        for pid in worker_children():
+            os.kill(pid, signal.SIGTERM)
+        launcher.wait(20)
 
 
 def test_bench_train_rejects_bad_budget():

@@ -50,24 +50,31 @@ def process_cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS  # utime, stime: fields 14 and 15 of stat
 
 
-def worker_children(parent: int | None = None) -> list[int]:
-    """Pids of the ``visfly-dist worker`` processes whose parent is ``parent`` (default: this process)."""
-    parent = os.getpid() if parent is None else parent
-    out = []
+def worker_children(root: int | None = None) -> list[int]:
+    """Pids of the ``visfly-dist worker`` processes descending from ``root`` (default: this process),
+    whether the trainer started them itself or through a launcher process."""
+    root = os.getpid() if root is None else root
+    children: dict[int, list[int]] = {}
     for name in os.listdir("/proc"):
         if not name.isdigit():
             continue
         try:
             with open(f"/proc/{name}/stat", "rb") as f:
                 ppid = int(f.read().rsplit(b")", 1)[1].split()[1])
-            if ppid != parent:
-                continue
-            with open(f"/proc/{name}/cmdline", "rb") as f:
-                argv = f.read().split(b"\0")
         except (OSError, IndexError, ValueError):
             continue
+        children.setdefault(ppid, []).append(int(name))
+    out, todo = [], list(children.get(root, ()))
+    while todo:
+        pid = todo.pop()
+        todo += children.get(pid, ())
+        try:
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = f.read().split(b"\0")
+        except OSError:
+            continue
         if b"visfly_dist.cli" in argv and b"worker" in argv:
-            out.append(int(name))
+            out.append(pid)
     return sorted(out)
 
 
