@@ -81,6 +81,8 @@ def test_worker_children_finds_workers_started_through_a_launcher():
 def test_bench_train_rejects_bad_budget():
     with pytest.raises(ConfigError, match="timesteps=0 must be an int >= 1"):
         bench_train(timesteps=0)
+    with pytest.raises(ConfigError, match="n_epochs=0 must be an int >= 1"):  # the trainer's own check, unwrapped
+        bench_train(timesteps=8, workers=1, changes={"n_epochs": 0})
 
 
 def test_bench_train_cli_is_registered():

@@ -216,26 +216,27 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
 
     count = default_workers(task) if workers is None else workers
     out_dir = tempfile.mkdtemp(prefix="visfly-bench-train-")
-    remote = None if delay_ms is None else RemoteWorkers(count, delay_ms, backend="raycast")
-    overrides = {} if remote is None else {"pool": {"listen": [f"tcp/127.0.0.1:{remote.listen_port}"],
-                                                    "shared_memory": False, "min_workers": count}}
-    cfg = TrainConfig(task=task, timesteps=timesteps, seed=seed, out=out_dir, checkpoint_every=0, progress=False,
-                      workers=count if remote is None else 0, run_id=remote.run_id if remote else None,
-                      overrides=overrides)
-    if changes:
-        cfg = replace(cfg, **changes)
     threads = torch.get_num_threads()
     monitor = CpuMonitor()
     printed = io.StringIO()
+    remote = None
     try:
+        remote = None if delay_ms is None else RemoteWorkers(count, delay_ms, backend="raycast")
+        overrides = {} if remote is None else {"pool": {"listen": [f"tcp/127.0.0.1:{remote.listen_port}"],
+                                                        "shared_memory": False, "min_workers": count}}
+        cfg = TrainConfig(task=task, timesteps=timesteps, seed=seed, out=out_dir, checkpoint_every=0,
+                          progress=False, workers=count if remote is None else 0,
+                          run_id=remote.run_id if remote else None, overrides=overrides)
+        cfg = replace(cfg, **(changes or {}))
         with watch_sb3(monitor.snapshot) as clock, contextlib.redirect_stdout(printed):
             before = monitor.snapshot()
             result = train(cfg)
             after = monitor.snapshot()
     except Exception as exc:
-        logs = remote.log_tail() if remote is not None else ""
-        raise RuntimeError(f"bench train ({task}, delay_ms={delay_ms}) failed: {exc}\n{printed.getvalue()[-2000:]}"
-                           f"\n{logs}") from exc
+        if remote is None:
+            raise
+        raise RuntimeError(f"bench train ({task}, delay_ms={delay_ms}) failed: {exc}\n"
+                           f"{printed.getvalue()[-2000:]}\n{remote.log_tail()}") from exc
     finally:
         monitor.close()
         torch.set_num_threads(threads)
@@ -266,7 +267,7 @@ def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: Lo
         **busy_shares(start, end),
         "startup_s": round((after.wall - before.wall) - loop_s, 2),
         "success_rate": summary.get("success_rate"),
-        "timing": timing if clock.start else f"{timing}; loop = whole train() call, start-up included",
+        "timing": timing if clock.start or "loop_s" in summary else f"{timing}; loop = whole train() call",
     }
 
 
