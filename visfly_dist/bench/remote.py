@@ -103,9 +103,9 @@ class RemoteWorkers:
         self.backend = backend
         self.run_id = run_id or f"bench{os.getpid()}x{int(time.time() * 1000) % 100000}"
         self.listen_port = free_port()
+        self._proxy, self.proxy_endpoint = start_proxy(self.listen_port, delay_ms)
         self._log_dir = tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")
         self._processes: list[subprocess.Popen] = []
-        self._proxy, self.proxy_endpoint = start_proxy(self.listen_port, delay_ms)
         self._closed = threading.Event()
         self._start_timeout_s = start_timeout_s
         self._starter = threading.Thread(target=self._start_when_listening, daemon=True, name="bench-remote-start")
@@ -121,11 +121,6 @@ class RemoteWorkers:
         return [sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", self.run_id, "--connect",
                 self.proxy_endpoint, "--no-shm", "--backend", self.backend, "--worker-id", f"remote-{index}",
                 "--parent-pid", str(os.getpid())]
-
-    @property
-    def pids(self) -> list[int]:
-        """Process ids of the workers started so far."""
-        return [p.pid for p in self._processes]
 
     def _start_when_listening(self) -> None:
         deadline = time.monotonic() + self._start_timeout_s
