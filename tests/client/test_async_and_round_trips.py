@@ -1,0 +1,89 @@
+"""One round trip per step (resets included), and the EnvPool-style send/recv interface."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests.client.counter_task import make_counter, small_pool
+from visfly_dist.errors import ConfigError
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = make_counter(num_envs=4, max_episode_steps=3, pool=small_pool(workers=2))
+    yield env
+    env.close()
+
+
+def _count_requests(env):
+    """Count step requests sent to the workers (wrapping the aggregator's submit)."""
+    calls = []
+    submit = env.aggregator.submit
+
+    def counting(*args, **kwargs):
+        calls.append(kwargs.get("spawn_agents"))
+        return submit(*args, **kwargs)
+
+    env.aggregator.submit = counting
+    return calls
+
+
+def test_steps_with_resets_make_one_round_trip_each(env):
+    env.reset()
+    calls = _count_requests(env)
+    observe = env.aggregator.observe
+    env.aggregator.observe = lambda *a, **k: pytest.fail("a second round trip inside a step")
+    try:
+        hover = np.tile(env.quad.hover_action().numpy(), (4, 1))
+        for t in range(7):  # episodes of 3 steps: resets at steps 3 and 6
+            obs, _, done, infos = env.step(hover)
+            if t in (2, 5):
+                assert done.all() and obs["step"][:, 0].tolist() == [0, 0, 0, 0]
+                assert all(info["terminal_observation"]["step"][0] == 3 for info in infos)
+        assert len(calls) == 7
+        # each reset agent's next start is rendered with the following step, ready before it is needed
+        assert [len(c) for c in calls] == [4, 0, 0, 4, 0, 0, 4]  # after reset() too
+    finally:
+        del env.aggregator.submit
+        env.aggregator.observe = observe
+
+
+def test_reset_views_match_a_fresh_render_of_the_start(env):
+    env.reset()
+    hover = np.tile(env.quad.hover_action().numpy(), (4, 1))
+    for _ in range(3):
+        obs, _, done, _ = env.step(hover)
+    assert done.all()
+    fresh = env.aggregator.observe(env.state.pose().detach().numpy())  # where the agents now stand
+    np.testing.assert_array_equal(obs["depth"], fresh.images["depth"])
+
+
+def test_send_recv_returns_groups_and_matches_the_synchronous_step(env):
+    env.reset()
+    env.seed(7)
+    env.reset()
+    hover = torch.as_tensor(np.tile(env.quad.hover_action().numpy(), (2, 1)))
+    env.send(hover, [0, 1])
+    env.send(hover, [2, 3])
+    with pytest.raises(ConfigError, match="still in flight"):
+        env.send(hover, [1, 2])
+    seen = []
+    for _ in range(2):
+        result, ids = env.recv()
+        seen.append(sorted(ids.tolist()))
+        assert result.observation["depth"].shape == (2, 1, 16, 16) and result.reward.shape == (2,)
+        assert result.observation["step"][:, 0].tolist() == [1, 1]
+    assert sorted(seen) == [[0, 1], [2, 3]]
+    with pytest.raises(ConfigError, match="without a send"):
+        env.recv()
+    # group A runs ahead of group B: its episode ends first, B's rows are untouched
+    env.send(hover, [0, 1])
+    env.recv()
+    env.send(hover, [0, 1])
+    result, ids = env.recv()
+    assert ids.tolist() == [0, 1] and result.truncated.all()
+    assert env.episode_step.tolist() == [0, 0, 1, 1]
+    with pytest.raises(ConfigError, match="distinct indices"):
+        env.send(hover, [4, 5])
