@@ -1,7 +1,7 @@
 """Start and stop scene worker processes on this host.
 
 Workers are started with ``subprocess`` (fork + immediate exec, no Python runs in the child), so
-it is safe even after this process opened a Zenoh session; ``fork`` alone is not (zenoh-facts §7).
+it is safe even after this process opened a Zenoh session; ``fork`` alone is not (a forked Zenoh session hangs).
 Each worker gets ``--parent-pid`` so it exits by itself if its parent dies, and runs in its own
 session so a Ctrl-C in the terminal reaches the parent only, which then stops its workers.
 """

@@ -1,6 +1,6 @@
 """The worker pool: the Zenoh session, who is alive, local worker processes, and fan-out requests.
 
-Invariants (zenoh-facts.md):
+Invariants (Zenoh 1.x behaviour, see docs/ARCHITECTURE.md):
 - Liveliness is the source of truth for "alive": a worker is usable while its token exists and we
   have not banned it. A DELETE (process gone, or its lease expired when hung) removes it. A
   worker that misses a deadline is banned even if its token lingers; a later DELETE lifts the

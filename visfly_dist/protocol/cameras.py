@@ -1,6 +1,6 @@
 """Camera (sensor) specification shared by the client, the aggregator and the workers.
 
-Conventions (DESIGN.md): the camera looks along body +x by default, z up in the image's "up";
+Conventions (docs/ARCHITECTURE.md): the camera looks along body +x by default, z up in the image's "up";
 pinhole with square pixels and a horizontal field of view. Depth is metric distance along the
 optical axis, float32 ``(1, H, W)``; no hit gives ``far``. RGB is uint8 ``(3, H, W)``.
 Segmentation is uint16 object ids ``(1, H, W)``, 0 = nothing.

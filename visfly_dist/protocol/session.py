@@ -1,6 +1,6 @@
 """Zenoh session configuration shared by workers, the aggregator and the router command.
 
-Facts that shaped this (reference/zenoh-facts.md): always set ``listen/endpoints`` (a default peer
+Facts that shaped this (measured with Zenoh 1.10, see docs/ARCHITECTURE.md): always set ``listen/endpoints`` (a default peer
 listens on every interface); turn multicast scouting off (we connect explicitly); the lease that
 bounds hang detection is the one configured on the *monitored* side; shared memory is on by
 default and only helps between processes on one host.

@@ -1,6 +1,6 @@
 """Camera geometry shared by the renderers: quaternions, mounts, pixel rays.
 
-Frames (DESIGN.md): world z-up; body FLU; the camera frame of a mount is the body frame turned by the
+Frames (docs/ARCHITECTURE.md): world z-up; body FLU; the camera frame of a mount is the body frame turned by the
 mount rotation, so with the identity mount the optical axis is body +x, image "up" is body +z and
 image "right" is body -y. A pixel ``(row i, column j)`` is sampled at its centre
 ``(j + 0.5, i + 0.5)``, row 0 at the top.
