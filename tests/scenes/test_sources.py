@@ -106,9 +106,10 @@ def test_worker_load_request_and_env_sources_carry_the_up_axis(root, tall_glb):
     from visfly_dist.aggregator.dataset import expand_sources
     from visfly_dist.protocol.cameras import CameraSpec
     from visfly_dist.protocol.messages import LoadScene
-    from visfly_dist.scene_worker.state import build_scene
+    from visfly_dist.scene_worker.state import assemble_scene, prepare_scene
 
-    loaded = build_scene(LoadScene("k", f"{tall_glb}?up=z", (CameraSpec(width=8, height=8),)), [root], "raycast")
+    request = LoadScene("k", f"{tall_glb}?up=z", (CameraSpec(width=8, height=8),))
+    loaded = assemble_scene(prepare_scene(request, [root], "raycast"), "raycast")
     try:
         assert loaded.scene.bounds[1, 2] == pytest.approx(4.0)
     finally:

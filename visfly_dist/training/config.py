@@ -77,7 +77,8 @@ class TrainConfig:
         normalize: running normalisation of vector observations and of rewards (VecNormalize).
         progress: print progress lines.
         overlap: collect the next rollout while PPO updates on the last one (policy lag of one
-            update, see :mod:`visfly_dist.training.overlap`); ``False`` is SB3's plain PPO.
+            update, see :mod:`visfly_dist.training.overlap`). Off by default: on hover (20k steps,
+            short rollouts) the lag cost most of what PPO learned; measure it on your task.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
     """
 
@@ -104,7 +105,7 @@ class TrainConfig:
     backbone: str = "visfly-cnn"
     normalize: bool = True
     progress: bool = True
-    overlap: bool = True
+    overlap: bool = False
     overrides: dict[str, Any] = field(default_factory=dict)
 
     def resolved(self) -> "TrainConfig":

@@ -51,8 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint-every", type=int, default=50_000, metavar="STEPS", help="0: only the final model")
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
-    parser.add_argument("--no-overlap", action="store_true",
-                        help="plain SB3 PPO: do not collect the next rollout while PPO updates (policy lag 0)")
+    parser.add_argument("--overlap", action="store_true",
+                        help="collect the next rollout while PPO updates (workers and learner busy at once; "
+                             "policy lag of one update, which can cost sample efficiency)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
@@ -82,7 +83,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         checkpoint_every=args.checkpoint_every,
         backbone=args.backbone,
         normalize=not args.no_normalize,
-        overlap=not args.no_overlap,
+        overlap=args.overlap,
         progress=not args.quiet,
         overrides=with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config),
     )
