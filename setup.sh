@@ -40,3 +40,11 @@ fi
 if [ "${VISFLY_SETUP_ONLY:-0}" != "1" ]; then
   exec "$PY" -m visfly_dist.cli train navigation "$@"
 fi
+
+# For the test suite only: a single-node Slurm (the Slurm launcher's test starts its own daemons).
+# Optional: without it that test is skipped with its reason.
+slurm_pkgs="slurmctld slurmd slurm-client munge"
+if [ "$(id -u)" = 0 ] && ! dpkg -s $slurm_pkgs >/dev/null 2>&1; then
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $slurm_pkgs >/dev/null) \
+    || echo "setup.sh: Slurm packages not installed; the Slurm launcher test will be skipped" >&2
+fi
