@@ -137,6 +137,7 @@ class Aggregator:
         self.table = SlotTable(self.dataset.take(scenes.num_scenes), self.agents_per_scene)
         self.agent_scene = self.table.agent_scene
         self._last = blank_observation(cameras, self.num_agents, self.search_radius)
+        self._last_private = True  # False while _last is an observation handed out by collect()
         self._switched = np.zeros(self.num_agents, dtype=bool)
         self._background: list[_Background] = []
         self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
@@ -342,19 +343,23 @@ class Aggregator:
         return out
 
     def _remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
-        """Keep the fresh rows as the agents' last good data, sharing ``obs``'s arrays when it has all."""
+        """Keep the fresh rows as the agents' last good data.
+
+        A full observation is kept as it is (no copy). A partial one is written into a private copy,
+        never into arrays already handed out to a caller.
+        """
         if len(agents) == self.num_agents and np.array_equal(agents, np.arange(self.num_agents)):
-            self._last = obs
+            self._last, self._last_private = obs, False
             return
-        if self._last is not None and len(rows):
-            last = self._last
-            if any(np.shares_memory(last.images[c.name], obs.images[c.name]) for c in self.cameras):
-                last = last.take(np.arange(self.num_agents))
-            for name, image in last.images.items():
-                image[agents] = obs.images[name][rows]
-            for key in ("collision", "inside", "nearest", "distance"):
-                getattr(last, key)[agents] = getattr(obs, key)[rows]
-            self._last = last
+        if not len(rows):
+            return
+        if not self._last_private:
+            self._last, self._last_private = self._last.take(np.arange(self.num_agents)), True
+        last = self._last
+        for name, image in last.images.items():
+            image[agents] = obs.images[name][rows]
+        for key in ("collision", "inside", "nearest", "distance"):
+            getattr(last, key)[agents] = getattr(obs, key)[rows]
 
     def _plan_entries(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]:
         """Per worker: scene keys, counts, the rows of ``agents`` in request order, and the slots."""
