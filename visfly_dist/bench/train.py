@@ -314,6 +314,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "with ratios to the 0 ms run (e.g. --delay-ms 0 20)")
     parser.add_argument("--workers", type=int, default=None, help="scene workers (default: the task's)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the run")
+    parser.add_argument("--overlap", action="store_true",
+                        help="train with --overlap (next rollout collected during the update, policy lag 1)")
     parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")
 
 
@@ -324,6 +326,7 @@ def run(args: argparse.Namespace) -> int:
     timesteps = args.timesteps or (QUICK_TIMESTEPS if args.quick else DEFAULT_TIMESTEPS)
     result: dict[str, Any] = {"machine": machine_info()}
     result |= bench_train(args.task, timesteps, args.delay_ms, args.workers, args.seed,
+                          changes={"overlap": True} if args.overlap else None,
                           log=lambda line: print(line, flush=True))
     result["load_average_end"] = load_average()
     print(report.text_table(result["rows"]))
