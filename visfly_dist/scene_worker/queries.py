@@ -51,6 +51,7 @@ PARITY_DIRECTIONS = np.array([[0.5377, 0.2841, 0.7938], [-0.6712, 0.4395, -0.596
 MAX_CROSSINGS = 512
 CROSSING_STEP = 1e-4   # metres a parity ray moves past each surface it crosses
 BOX_CHECK_CHUNK = 1 << 20   # (position, component) pairs tested per bounding-box chunk
+ON_SURFACE_M = 1e-12   # an FCL distance below this is a point on a surface
 BACKENDS = ("auto", "native", "fcl")
 POSITIONS_PER_THREAD = 1024   # native closest-point queries: fewer positions per thread cost more than they save
 
@@ -190,7 +191,7 @@ class ObstacleQueries:
             set_translation(positions[i])
             result = result_type()
             d = distance(bvh, point, request, result)
-            if d > 0:    # 0: the point lies on a surface and is its own nearest point
+            if d > ON_SURFACE_M:    # on a surface: its own nearest point (FCL answers a denormal and garbage points)
                 dist[i] = d
                 points[i] = result.nearest_points[0]
             else:
