@@ -75,7 +75,8 @@ def load_library() -> tuple[ctypes.CDLL | None, str]:
         lib.vf_points_free.restype = None
         lib.vf_points_free.argtypes = [ctypes.c_void_p]
         lib.vf_closest.restype = ctypes.c_int
-        lib.vf_closest.argtypes = [ctypes.c_void_p, _f64p, ctypes.c_int64, ctypes.c_int32, _f64p, _f64p]
+        lib.vf_closest.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p,
+                                   ctypes.c_void_p]   # raw addresses: data_as() would cost more than one query
     except (OSError, AttributeError) as exc:
         return None, f"{LIBRARY_PATH} failed to load: {exc}"
     return lib, "loaded"
@@ -160,8 +161,8 @@ class NativeMesh:
             raise ConfigError(f"positions shape {pos.shape} must be (n, 3)")
         dist = np.empty(len(pos))
         nearest = np.empty((len(pos), 3))
-        if len(pos) and self._lib.vf_closest(self.handle, pos.ctypes.data_as(_f64p), len(pos), int(threads),
-                                             dist.ctypes.data_as(_f64p), nearest.ctypes.data_as(_f64p)) != 0:
+        if len(pos) and self._lib.vf_closest(self.handle, pos.ctypes.data, len(pos), int(threads),
+                                             dist.ctypes.data, nearest.ctypes.data) != 0:
             raise _error(self._lib, f"closest points of {len(pos)} positions")
         return dist, nearest
 
