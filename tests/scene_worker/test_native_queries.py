@@ -70,6 +70,20 @@ def test_empty_scene_native():
 
 
 @needs_native
+def test_degenerate_triangles_answer_their_segment_or_point():
+    """A triangle with no area is its longest segment (or its one point): no NaN from the face region."""
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [5, 5, 5]])
+    line, point = render_native.NativeMesh(vertices, [[0, 1, 2]]), render_native.NativeMesh(vertices, [[3, 3, 3]])
+    p = np.array([[0.5, 1, 0], [1.5, 0, -2], [3, 1, 0], [-1, 0, 0], [1, 0, 0]])
+    dist, nearest = line.closest(p, threads=1)
+    np.testing.assert_allclose(nearest, [[0.5, 0, 0], [1.5, 0, 0], [2, 0, 0], [0, 0, 0], [1, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(dist, [1, 2, np.sqrt(2), 1, 0], atol=1e-12)
+    dist, nearest = point.closest(p, threads=2)
+    np.testing.assert_allclose(nearest, np.broadcast_to([5.0, 5, 5], (5, 3)))
+    np.testing.assert_allclose(dist, np.linalg.norm(p - 5.0, axis=1))
+
+
+@needs_native
 def test_native_mesh_rejects_bad_faces():
     with pytest.raises(RuntimeError, match=r"face index 3 is outside \[0, 3\)"):
         render_native.NativeMesh(np.eye(3), np.array([[0, 1, 3]]))
