@@ -14,23 +14,27 @@ For each drone centre ``p`` (a sphere of ``drone_radius``):
 - ``collision``: the sphere touches or overlaps an obstacle: ``true distance <= drone_radius`` or
   ``inside``.
 
-How: python-fcl's distance from one BVH of every triangle to a *point* (a sphere of radius 0) at
-the centre, mesh first so FCL reports the world nearest point exactly. Querying the centre as a
-point sidesteps FCL's garbage answers for overlapping shapes (a point overlaps nothing unless it
-lies on a surface, where the answer is 0 and the point itself), and one distance answers collision
-too (a sphere touches a mesh iff its centre is within ``drone_radius`` of a triangle). A sphere
+How: the nearest point of every triangle to the centre as a *point*, which answers collision too (a
+sphere touches a mesh iff its centre is within ``drone_radius`` of a triangle). Two backends give
+the same answers (float64 maths, exact nearest points): the native library's closest-point query
+(:class:`~visfly_dist.scene_worker.render_native.NativeMesh`: Embree's ``rtcPointQuery`` over one
+BVH of every triangle, all positions in one C call with the GIL released) when it is built, else
+python-fcl's distance from one BVH to a sphere of radius 0 at the centre, mesh first so FCL reports
+the world nearest point exactly (a point overlaps nothing unless it lies on a surface, which
+sidesteps FCL's garbage answers for overlapping shapes), one FCL call per position. A sphere
 wholly inside a solid obstacle touches no triangle, so inside-ness is its own test: ray parity per
 solid component with Embree (over the solids' triangles only), the majority of three skewed rays,
 cast only from points that can be inside a solid: no farther from a surface than the deepest point
 of any solid (half the smallest side of its bounding box) and inside some solid's bounding box.
 
-Cost: FCL has no batched distance, so the nearest-point query is one FCL call per position (the
-loop body is kept to the call itself); everything else (the inside test, the answer arithmetic) is
-vectorised over positions.
+Cost: the native query is one call per :meth:`ObstacleQueries.query`; FCL has no batched distance,
+so its fallback is one FCL call per position (the loop body kept to the call itself). Everything
+else (the inside test, the answer arithmetic) is vectorised over positions.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import fcl
@@ -39,6 +43,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from visfly_dist.errors import ConfigError
+from visfly_dist.scene_worker import render_native
 from visfly_dist.scenes.scene import Scene
 from visfly_dist.scenes.solids import solid_components
 
@@ -46,6 +51,9 @@ PARITY_DIRECTIONS = np.array([[0.5377, 0.2841, 0.7938], [-0.6712, 0.4395, -0.596
 MAX_CROSSINGS = 512
 CROSSING_STEP = 1e-4   # metres a parity ray moves past each surface it crosses
 BOX_CHECK_CHUNK = 1 << 20   # (position, component) pairs tested per bounding-box chunk
+ON_SURFACE_M = 1e-12   # an FCL distance below this is a point on a surface
+BACKENDS = ("auto", "native", "fcl")
+POSITIONS_PER_THREAD = 1024   # native closest-point queries: fewer positions per thread cost more than they save
 
 
 @dataclass(frozen=True)
@@ -71,19 +79,35 @@ class ObstacleQueries:
     Args:
         scene: the obstacles (every object's mesh).
         drone_radius: radius of a drone's collision sphere, metres.
+        backend: nearest points from ``"native"`` (the native library's closest-point query),
+            ``"fcl"`` (python-fcl), or ``"auto"``: native when the library is available, else FCL.
+
+    Attributes:
+        backend: the nearest-point backend in use, ``"native"`` or ``"fcl"``.
     """
 
-    def __init__(self, scene: Scene, drone_radius: float = 0.1) -> None:
+    def __init__(self, scene: Scene, drone_radius: float = 0.1, backend: str = "auto") -> None:
         if not (np.isfinite(drone_radius) and drone_radius >= 0):
             raise ConfigError(f"drone_radius={drone_radius!r} must be a finite number >= 0")
+        if backend not in BACKENDS:
+            raise ConfigError(f"backend={backend!r} must be one of {BACKENDS}")
+        if backend == "native" and not render_native.available():
+            raise ConfigError(f"backend 'native' is unavailable: {render_native.load_library()[1]}")
+        native = backend == "native" or (backend == "auto" and render_native.available())
+        self.backend = "native" if native else "fcl"
         self.drone_radius = float(drone_radius)
+        self._max_threads = min(8, len(os.sched_getaffinity(0)))
         objects = [o for o in scene.objects if len(o.mesh.faces)]
-        self._bvh = self._embree = None
+        self._bvh = self._embree = self._native = None
         if not objects:
             return
         starts = np.cumsum([0] + [len(o.mesh.vertices) for o in objects])
         vertices = np.concatenate([o.mesh.vertices for o in objects]).astype(np.float64)
         faces = np.concatenate([o.mesh.faces + s for o, s in zip(objects, starts)]).astype(np.int32)
+        self._build_parity(vertices, faces, objects)
+        if native:
+            self._native = render_native.NativeMesh(vertices, faces)
+            return
         model = fcl.BVHModel()
         model.beginModel(len(vertices), len(faces))
         model.addSubModel(vertices, faces)
@@ -91,7 +115,6 @@ class ObstacleQueries:
         self._bvh = fcl.CollisionObject(model)
         self._point = fcl.CollisionObject(fcl.Sphere(0.0))
         self._request = fcl.DistanceRequest(enable_nearest_points=True)
-        self._build_parity(vertices, faces, objects)
 
     def _build_parity(self, vertices: np.ndarray, faces: np.ndarray, objects: list) -> None:
         """Embree scene of the solids' triangles, their component ids and boxes."""
@@ -155,6 +178,9 @@ class ObstacleQueries:
     def _closest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unsigned distance to and world nearest point on any triangle, per position."""
         n = len(positions)
+        if self._native is not None:
+            threads = min(self._max_threads, -(-n // POSITIONS_PER_THREAD))
+            return self._native.closest(positions, threads)   # on a surface: 0 and the point itself
         dist = np.full(n, np.inf)
         points = positions.copy()
         if self._bvh is None:
@@ -165,7 +191,7 @@ class ObstacleQueries:
             set_translation(positions[i])
             result = result_type()
             d = distance(bvh, point, request, result)
-            if d > 0:    # 0: the point lies on a surface and is its own nearest point
+            if d > ON_SURFACE_M:    # on a surface: its own nearest point (FCL answers a denormal and garbage points)
                 dist[i] = d
                 points[i] = result.nearest_points[0]
             else:

@@ -7,6 +7,9 @@ raycast backend then falls back to embreex. ``VISFLY_NATIVE_TRACER=0`` turns it 
 A :class:`NativeScene` holds one scene's Embree BVH (built once). :func:`trace` renders a list of
 :class:`Batch` es (one camera of many drones of one scene each) in ONE native call: the tracer's
 threads spread over every frame of every batch, and ctypes releases the GIL for the whole call.
+
+A :class:`NativeMesh` (``native/queries.cpp``) answers closest-point queries: the nearest point of
+a mesh to every position of a call in one native call (Embree's ``rtcPointQuery``, float64 maths).
 """
 
 from __future__ import annotations
@@ -23,10 +26,12 @@ import numpy as np
 from visfly_dist.errors import ConfigError
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
-LIBRARY_VERSION = 2
+LIBRARY_VERSION = 3
 DISABLE_ENV = "VISFLY_NATIVE_TRACER"
 
 _f32p = ctypes.POINTER(ctypes.c_float)
+_f64p = ctypes.POINTER(ctypes.c_double)
+_i32p = ctypes.POINTER(ctypes.c_int32)
 
 
 class _Batch(ctypes.Structure):
@@ -65,6 +70,13 @@ def load_library() -> tuple[ctypes.CDLL | None, str]:
         lib.vf_scene_free.argtypes = [ctypes.c_void_p]
         lib.vf_trace.restype = ctypes.c_int
         lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
+        lib.vf_points_new.restype = ctypes.c_void_p
+        lib.vf_points_new.argtypes = [_f64p, ctypes.c_int64, _i32p, ctypes.c_int64]
+        lib.vf_points_free.restype = None
+        lib.vf_points_free.argtypes = [ctypes.c_void_p]
+        lib.vf_closest.restype = ctypes.c_int
+        lib.vf_closest.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p,
+                                   ctypes.c_void_p]   # raw addresses: data_as() would cost more than one query
     except (OSError, AttributeError) as exc:
         return None, f"{LIBRARY_PATH} failed to load: {exc}"
     return lib, "loaded"
@@ -112,6 +124,55 @@ class NativeScene:
             self.handle = None
 
     def __del__(self) -> None:  # last resort; renderers call close()
+        self.close()
+
+
+class NativeMesh:
+    """One mesh's triangles in an Embree BVH for closest-point queries, built on construction.
+
+    Args:
+        vertices: ``(V, 3)`` float64 vertex positions.
+        faces: ``(F, 3)`` vertex indices of each triangle, ``F >= 1``.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        self._lib = _lib()
+        self.handle: int | None = None
+        verts = np.ascontiguousarray(vertices, dtype=np.float64)
+        tris = np.ascontiguousarray(faces, dtype=np.int32)
+        if verts.ndim != 2 or verts.shape[1] != 3:
+            raise ConfigError(f"vertices shape {verts.shape} must be (V, 3)")
+        if tris.ndim != 2 or tris.shape[1] != 3 or not len(tris):
+            raise ConfigError(f"faces shape {tris.shape} must be (F, 3) with F >= 1")
+        handle = self._lib.vf_points_new(verts.ctypes.data_as(_f64p), len(verts), tris.ctypes.data_as(_i32p), len(tris))
+        if not handle:
+            raise _error(self._lib, f"building the closest-point BVH of {len(tris)} triangles")
+        self.handle = handle
+
+    def closest(self, positions: np.ndarray, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Distance ``(n,)`` to and nearest point ``(n, 3)`` on the mesh of each position, float64.
+
+        One native call on ``threads`` threads, GIL released.
+        """
+        if self.handle is None:
+            raise ConfigError("closest() on a closed NativeMesh")
+        pos = np.ascontiguousarray(positions, dtype=np.float64)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ConfigError(f"positions shape {pos.shape} must be (n, 3)")
+        dist = np.empty(len(pos))
+        nearest = np.empty((len(pos), 3))
+        if len(pos) and self._lib.vf_closest(self.handle, pos.ctypes.data, len(pos), int(threads),
+                                             dist.ctypes.data, nearest.ctypes.data) != 0:
+            raise _error(self._lib, f"closest points of {len(pos)} positions")
+        return dist, nearest
+
+    def close(self) -> None:
+        """Free the BVH; idempotent."""
+        if self.handle is not None:
+            self._lib.vf_points_free(self.handle)
+            self.handle = None
+
+    def __del__(self) -> None:  # last resort
         self.close()
 
 

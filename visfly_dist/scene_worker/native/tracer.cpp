@@ -16,7 +16,7 @@
 // Plain C ABI for ctypes (which releases the GIL around every call). No exception crosses it:
 // failures return non-zero and vf_last_error() says why.
 
-#include <embree3/rtcore.h>
+#include "embree_device.h"
 
 #include <algorithm>
 #include <atomic>
@@ -40,7 +40,13 @@ void on_embree_error(void*, RTCError code, const char* str) {
   last_error = std::string("embree error ") + std::to_string(static_cast<int>(code)) + ": " + (str ? str : "");
 }
 
-RTCDevice get_device() {
+}  // namespace
+
+namespace visfly {
+
+void set_error(const std::string& message) { last_error = message; }
+
+RTCDevice shared_device() {
   std::lock_guard<std::mutex> lock(device_mutex);
   if (device == nullptr) {
     device = rtcNewDevice(nullptr);
@@ -53,7 +59,7 @@ RTCDevice get_device() {
   return device;
 }
 
-}  // namespace
+}  // namespace visfly
 
 extern "C" {
 
@@ -91,12 +97,12 @@ struct vf_batch {
 
 const char* vf_last_error(void) { return last_error.c_str(); }
 
-int vf_version(void) { return 2; }
+int vf_version(void) { return 3; }
 
 // Build a robust Embree scene from a triangle soup (triangles, 3 vertices, xyz) and its BVH.
 void* vf_scene_new(const float* triangles, int64_t count) {
   try {
-    RTCDevice dev = get_device();
+    RTCDevice dev = visfly::shared_device();
     if (dev == nullptr) return nullptr;
     if (count <= 0 || count > (int64_t{1} << 31) / 3 - 1) {
       last_error = "triangle count " + std::to_string(count) + " must be in [1, 2^31 / 3)";
