@@ -34,7 +34,7 @@ build_tracer() {
   make -s -C visfly_dist/scene_worker/native
 }
 if ! build_tracer >/dev/null 2>&1; then
-  echo "setup.sh: native tracer not built (needs g++, make and libembree-dev, installed as root); raycast uses embreex" >&2
+  echo "setup.sh: native tracer not built (needs g++, make and libembree-dev, installed as root); raycast uses embreex and obstacle queries use FCL (slower)" >&2
 fi
 
 if [ "${VISFLY_SETUP_ONLY:-0}" != "1" ]; then

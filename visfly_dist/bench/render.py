@@ -12,7 +12,7 @@ the per-core figure, steadier than wall time on a shared machine.
 
 JSON rows: ``backend, tracer (raycast only), threads (raycast only), res, kind, agents, frames_per_s,
 cpu_frames_per_s (in-process rows), where (in_process|worker), seconds``; one queries row
-``backend="fcl", kind="queries", agents, queries_per_s, query_share_of_raycast_step``: the queries'
+``backend="native"|"fcl", kind="queries", agents, queries_per_s, query_share_of_raycast_step``: the queries'
 share of a step that renders 64x64 depth with raycast and queries (``q / (render + q)``); and the
 goal rows of issue 8 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``.
 """
@@ -121,7 +121,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
     queries = ObstacleQueries(world, DRONE_RADIUS)
     tq = time_it(lambda: queries.query(poses[:, :3], search_radius), reps=max(reps, 3), warmup=1)
     render_s = _raycast_depth64_seconds(rows, world, poses, reps)
-    rows.append({"backend": "fcl", "kind": "queries", "agents": cameras, "queries_per_s": cameras / tq.median,
+    rows.append({"backend": queries.backend, "kind": "queries", "agents": cameras, "queries_per_s": cameras / tq.median,
                  "query_share_of_raycast_step": tq.median / (tq.median + render_s) if render_s else None,
                  "where": "in_process", "seconds": tq.median})
     log(f"[bench render] obstacle queries: {rows[-1]['queries_per_s']:.0f} queries/s")
