@@ -6,12 +6,15 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
 
 from tests.aggregator.conftest import make_aggregator, pid_alive, reference, spawn_poses
 from tests.helpers import REPO, _read_line, free_port, start_worker, stop_process, wait_for
+from visfly_dist.errors import NoWorkersError
 
 SCENES = {"sources": ("gen:garage-stones",), "num_scenes": 2, "agents_per_scene": 2}
 
@@ -81,3 +84,45 @@ def test_launched_pool_restarts_workers_and_the_aggregator_follows(router, scene
     finally:
         assert stop_process(launch) == 0
     assert wait_for(lambda: not pid_alive(new_pid), timeout=10)
+
+
+def test_a_router_outage_pauses_a_local_pool_and_nobody_is_killed():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router, line = _start_cli("router", "--listen", endpoint)
+    assert "router ready" in line
+    try:
+        with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 2, "run_id": "outage",
+                                   "step_timeout_s": 2.0, "outage_limit_s": 60.0}, scenes=SCENES) as agg:
+            poses = spawn_poses(agg)
+            before = agg.observe(poses)
+            pids = dict(agg.local_worker_pids())
+            assert stop_process(router) == 0  # the router is gone for about 6 s
+            restarted = []
+            timer = threading.Timer(6.0, lambda: restarted.append(_start_cli("router", "--listen", endpoint)[0]))
+            timer.start()
+            try:  # steps get lost data or wait for workers meanwhile, never an error
+                assert wait_for(lambda: not agg.observe(poses).lost.any(), timeout=90)
+            finally:
+                timer.join()
+                router = restarted[0] if restarted else router
+            np.testing.assert_array_equal(agg.observe(poses).images["depth"], before.images["depth"])
+            survivors = [w for w, pid in pids.items() if pid_alive(pid)]
+            assert survivors, f"every local worker was killed during the outage: {pids}"
+    finally:
+        stop_process(router)
+
+
+def test_an_outage_longer_than_the_limit_names_the_router():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router, _ = _start_cli("router", "--listen", endpoint)
+    try:
+        with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 1, "run_id": "outage2",
+                                   "step_timeout_s": 1.0, "outage_limit_s": 3.0}, scenes=SCENES) as agg:
+            poses = spawn_poses(agg)
+            agg.observe(poses)
+            assert stop_process(router) == 0
+            with pytest.raises(NoWorkersError, match="no scene worker reachable for outage_limit_s=3 s"):
+                for _ in range(20):
+                    agg.observe(poses)
+    finally:
+        stop_process(router)

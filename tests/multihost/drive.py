@@ -46,7 +46,10 @@ def main() -> int:
             steps += 1
             if steps % args.report_every == 0:
                 agg = env.aggregator
-                print(json.dumps({"steps": steps, "workers": agg.workers,
+                held = {h["worker_id"]: sorted(h.get("scenes", [])) for h in agg.health()} \
+                    if steps % (5 * args.report_every) == 0 else None
+                print(json.dumps({"steps": steps, "workers": agg.workers, "held": held,
+                                  "served": [[s.worker, s.key] for s in agg.table.slots if s.worker],
                                   "assignment": {str(k): v for k, v in agg.assignment().items()}}), flush=True)
     finally:
         env.close()

@@ -127,6 +127,10 @@ def test_tcp_training_survives_a_killed_worker_a_partition_and_a_router_restart(
         rep = wait_report(trainer, lambda m: "wc" in m["workers"] and serving(m) == {"wb", "wc"}, 60,
                           "wc rejoining after the partition and getting work")
         assert wc.poll() is None, "the partitioned worker must survive and reconnect"
+        # It holds only the scenes it serves now: the ones it served before the partition were unloaded.
+        wait_report(trainer, lambda m: m["held"] is not None and all(
+            keys == sorted(k for w, k in m["served"] if w == wid) for wid, keys in m["held"].items()), 60,
+            "each worker holding exactly the scenes it serves")
 
         router.send_signal(signal.SIGTERM)  # router restart
         assert router.wait(20) == 0, router.stderr_text()

@@ -141,6 +141,7 @@ class Aggregator:
         self._switched = np.zeros(self.num_agents, dtype=bool)
         self._background: list[_Background] = []
         self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
+        self._stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
         self._collects = 0
         self._spawn_pools: dict[tuple, np.ndarray] = {}
         self._spawn_draws: dict[tuple, int] = {}
@@ -398,6 +399,22 @@ class Aggregator:
 
     # ----- failures --------------------------------------------------------------------------
 
+    def _orphan(self, worker: str, reason: str) -> None:
+        """Orphan ``worker``'s slots; remember their keys, to unload them if it comes back with them."""
+        for slot in self.table.slots:
+            if slot.worker == worker:
+                self._stale.setdefault(worker, set()).add(slot.key)
+        for slot in self.table.orphan_worker(worker):
+            log.warning("run %s: slot %d left worker %s (%s)", self.run_id, slot, worker, reason)
+
+    def _unload_stale(self, live: Sequence[str]) -> None:
+        """A worker that dropped off the network and rejoined still holds scenes it no longer serves:
+        unload them (a restarted one answers ``unknown_scene``, which is fine)."""
+        back = [w for w in live if w in self._stale]
+        requests = [(w, UnloadScene(k).to_message()) for w in back for k in sorted(self._stale.pop(w))]
+        for pending in self._pool.send(requests, self.pool_config.step_timeout_s) if requests else []:
+            self._background.append(_Background("unload", pending))
+
     def _handle_failure(self, reply: Reply, slots: Sequence[int] = ()) -> None:
         """The one failure policy: what a failed or refused request does to its worker and slots."""
         if reply.error is not None and not is_unknown_scene(reply.error):
@@ -408,20 +425,20 @@ class Aggregator:
             reason = reply.failure or "failed"
             others = [w for w in self._pool.live_workers() if w != reply.worker_id]
             self._pool.drop(reply.worker_id, reason, replace=bool(others))
-        for slot in self.table.orphan_worker(reply.worker_id):
-            log.warning("run %s: slot %d left worker %s (%s)", self.run_id, slot, reply.worker_id, reason)
+        self._orphan(reply.worker_id, reason)
 
     # ----- background work -------------------------------------------------------------------
 
     def _maintain(self) -> None:
         """Orphan slots of dead or restarted workers; start loads for orphans; rebalance; wait out outages."""
+        self._pool.respawn_exited()
         live = self._pool.live_workers()
         gens = {w: self._pool.generation(w) for w in live}
         for s in self.table.slots:
             if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
                 why = "liveliness token gone" if s.worker not in gens else "restarted"
-                for slot in self.table.orphan_worker(s.worker):
-                    log.warning("run %s: slot %d lost its worker (%s)", self.run_id, slot, why)
+                self._orphan(s.worker, why)
+        self._unload_stale(live)
         if not live:
             live = self._wait_out_outage()
             gens = {w: self._pool.generation(w) for w in live}

@@ -210,6 +210,8 @@ class WorkerPool:
         """
         deadline = time.monotonic() + timeout_s
         while True:
+            if remote_may_join:
+                self.respawn_exited()
             live = set(self.live_workers())
             starting = [w for w in self._local.values() if w.worker_id not in live and w.running()]
             missing = [w for w in required if w not in live and w in self._local and self._local[w].running()]
@@ -236,6 +238,24 @@ class WorkerPool:
     def user(self) -> str | None:
         """The user name the session authenticated with (usrpwd), or ``None``."""
         return self._user
+
+    def respawn_exited(self, min_age_s: float = 2.0) -> list[str]:
+        """Replace local workers whose process exited (e.g. it could not reach the router).
+
+        Each replacement is started at most once per ``min_age_s`` per worker slot, so an outage
+        gives a bounded retry rate, and workers come back by themselves once the router does.
+        """
+        if not self.config.respawn or self._launch is None:
+            return []
+        out = []
+        now = time.monotonic()
+        for wid, worker in list(self._local.items()):
+            if not worker.running() and now - worker.started_at >= min_age_s:
+                log.warning("run %s: local worker %s exited (%s); starting a replacement", self.run_id, wid,
+                            worker.process.returncode)
+                del self._local[wid]
+                out.append(self.spawn_local())
+        return out
 
     def is_local(self, worker_id: str) -> bool:
         return worker_id in self._local
