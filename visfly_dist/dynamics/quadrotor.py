@@ -6,6 +6,7 @@ from typing import Callable
 
 import torch
 
+from visfly_dist.dynamics.adjoint import CtbrStep, CtbrStepFunction
 from visfly_dist.dynamics.airframe import Airframe, load_airframe
 from visfly_dist.dynamics.config import DynamicsConfig
 from visfly_dist.dynamics.controllers import make_controller
@@ -73,6 +74,11 @@ class Quadrotor:
         self.controller = make_controller(config.controller, self.model, self.airframe,
                                           config.position_origin)
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
+        self._adjoint: CtbrStep | None = None
+        if config.adjoint and config.controller == "ctbr" and not config.compile \
+                and not _any_requires_grad(self.model, self.controller):
+            self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
+                                     config.integrator == "rk4", config.ground)
         self._advance: Callable[..., Tensors] = self._advance_eager
         if config.compile:
             # All instances share one code object, and each batch size, grad mode and
@@ -157,20 +163,33 @@ class Quadrotor:
                        rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
         """The control step on plain tensors (compiled as a whole with ``config.compile``)."""
         s = torch.cat((pos, vel, quat, omega, rotor), dim=1).T.contiguous()
-        setpoint = self.controller.prepare(action.to(self.dtype).clamp(-1.0, 1.0).T)
-        h = self.config.sim_dt
+        action = action.to(self.dtype).clamp(-1.0, 1.0).T
+        if self._adjoint is not None and torch.is_grad_enabled() and (s.requires_grad or action.requires_grad):
+            s, contact = CtbrStepFunction.apply(s, action.contiguous(), self._adjoint)
+        else:
+            s, contact = self._substeps(s, action)
+        pos, vel, quat, omega, rotor = unpack(s)
+        s = torch.cat((pos, vel, quat / quat.norm(dim=0, keepdim=True), omega, rotor)).T.contiguous()
+        return (*s.split(ROWS, dim=1), contact)
+
+    def _substeps(self, s: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The physics substeps of one control step on the flat state (recorded by autograd)."""
+        setpoint = self.controller.prepare(action)
         contact = torch.zeros(s.shape[1], dtype=torch.bool, device=s.device)
         for _ in range(self.config.substeps):
             rotor_cmd = self.controller.rotor_command(s, setpoint)
             if not self.config.motor_lag:
                 s = torch.cat((s[:ROTOR_ROW], rotor_cmd))
-            s = self._integrate(self.model, s, rotor_cmd, h)
+            s = self._integrate(self.model, s, rotor_cmd, self.config.sim_dt)
             contact = contact | (s[2] <= 0)
             if self.config.ground:
                 s = _ground_reaction(s)
-        pos, vel, quat, omega, rotor = unpack(s)
-        s = torch.cat((pos, vel, quat / quat.norm(dim=0, keepdim=True), omega, rotor)).T.contiguous()
-        return (*s.split(ROWS, dim=1), contact)
+        return s, contact
+
+
+def _any_requires_grad(*objects: object) -> bool:
+    """Whether a tensor attribute of any of ``objects`` requires grad (airframe parameters, wind)."""
+    return any(isinstance(v, torch.Tensor) and v.requires_grad for o in objects for v in vars(o).values())
 
 
 def _ground_reaction(s: torch.Tensor) -> torch.Tensor:
