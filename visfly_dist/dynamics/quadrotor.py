@@ -75,10 +75,9 @@ class Quadrotor:
                                           config.position_origin)
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
         self._adjoint: CtbrStep | None = None
-        if config.adjoint and config.controller == "ctbr" and not config.compile \
-                and not _any_requires_grad(self.model, self.controller):
+        if config.adjoint and config.controller == "ctbr" and not _any_requires_grad(self.model, self.controller):
             self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
-                                     config.integrator == "rk4", config.ground)
+                                     config.integrator == "rk4", config.ground, compile=config.compile)
         self._advance: Callable[..., Tensors] = self._advance_eager
         if config.compile:
             # All instances share one code object, and each batch size, grad mode and
@@ -143,8 +142,11 @@ class Quadrotor:
         queue = state.action_queue
         if queue.shape[1] > 0:
             action, queue = queue[:, 0], torch.cat((queue[:, 1:], action[:, None]), dim=1)
-        pos, vel, quat, omega, rotor, contact = self._advance(
-            state.pos, state.vel, state.quat, state.omega, state.rotor, action)
+        inputs = (state.pos, state.vel, state.quat, state.omega, state.rotor, action)
+        advance = self._advance
+        if self._adjoint is not None and torch.is_grad_enabled() and any(x.requires_grad for x in inputs):
+            advance = self._advance_adjoint
+        pos, vel, quat, omega, rotor, contact = advance(*inputs)
         return QuadState(pos=pos, vel=vel, quat=quat, omega=omega, rotor=rotor,
                          ground_contact=contact, action_queue=queue)
 
@@ -161,13 +163,26 @@ class Quadrotor:
 
     def _advance_eager(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
                        rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
-        """The control step on plain tensors (compiled as a whole with ``config.compile``)."""
+        """The control step on plain tensors, recorded op by op by autograd (compiled as a whole
+        with ``config.compile``)."""
+        s, action = self._pack(pos, vel, quat, omega, rotor, action)
+        return self._unpack(*self._substeps(s, action))
+
+    def _advance_adjoint(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
+                         rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
+        """The control step with gradients, as one autograd node (``dynamics.adjoint``)."""
+        s, action = self._pack(pos, vel, quat, omega, rotor, action)
+        return self._unpack(*CtbrStepFunction.apply(s, action.contiguous(), self._adjoint))
+
+    def _pack(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
+              rotor: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The flat component-major state (17, N) and clamped actions (4, N)."""
         s = torch.cat((pos, vel, quat, omega, rotor), dim=1).T.contiguous()
-        action = action.to(self.dtype).clamp(-1.0, 1.0).T
-        if self._adjoint is not None and torch.is_grad_enabled() and (s.requires_grad or action.requires_grad):
-            s, contact = CtbrStepFunction.apply(s, action.contiguous(), self._adjoint)
-        else:
-            s, contact = self._substeps(s, action)
+        return s, action.to(self.dtype).clamp(-1.0, 1.0).T
+
+    @staticmethod
+    def _unpack(s: torch.Tensor, contact: torch.Tensor) -> Tensors:
+        """Batch-first components of a flat state, the quaternion renormalised, and the contacts."""
         pos, vel, quat, omega, rotor = unpack(s)
         s = torch.cat((pos, vel, quat / quat.norm(dim=0, keepdim=True), omega, rotor)).T.contiguous()
         return (*s.split(ROWS, dim=1), contact)
