@@ -51,6 +51,18 @@ class CtbrStep:
         kw = dict(dtype=model.dtype, device=model.device)
         self.action_scale = torch.tensor([0.5 * controller.max_collective] + [controller.max_rate] * 3, **kw)[:, None]
         self.drag_slope_quadratic = 2 * model.drag_quadratic
+        # Reverse of ``features = [r; r^2; x outer x]`` through the dynamics matrix D (17, 57):
+        # the rotor part as one (8, 17) matmul, and d/dx of ``g_y . D (x outer x)`` as one
+        # (7, 17 * 7) matmul on ``g_y outer x`` (the outer-product block of D, symmetrised).
+        matrix = model.dynamics_matrix
+        self.rotor_matrix_t = matrix[:, :8].T.contiguous()
+        bilinear = matrix[:, 8:].reshape(17, 7, 7)
+        self.pair_matrix = (bilinear + bilinear.transpose(1, 2)).permute(1, 0, 2).reshape(7, 17 * 7).contiguous()
+        # The same for the CTBR loop's features [omega; r; r^2; omega outer omega] and matrix (4, 20).
+        loop = controller.state_matrix
+        self.loop_linear_t = loop[:, :11].T.contiguous()
+        rates = loop[:, 11:].reshape(4, 3, 3)
+        self.loop_pair_matrix = (rates + rates.transpose(1, 2)).permute(1, 0, 2).reshape(3, 4 * 3).contiguous()
 
     # --- pieces: forward with a cache, and their vector-Jacobian products -----------------------
 
@@ -66,12 +78,12 @@ class CtbrStep:
         g_rot = g_rot + rel[:, None] * g_vb[None]
         g_vel = g_pos + (rot * g_vb[None]).sum(1)                        # R g_vb
         g_y = torch.cat((g_force[2:], g_omega_dot, g_rot.reshape(9, n), g_quat_dot))
-        g_features = m.dynamics_matrix.T @ g_y
-        g_outer = g_features[8:].reshape(7, 7, n)
-        g_x = (g_outer * x[None]).sum(1) + (g_outer * x[:, None]).sum(0)
-        g_rotor = g_features[:4] + 2 * rotor * g_features[4:8] - m.inv_motor_tau * g_rotor_dot
+        g_x = self.pair_matrix @ (g_y[:, None] * x[None]).reshape(17 * 7, n)
+        g_r, g_r2 = (self.rotor_matrix_t @ g_y).split(4)
+        g_cmd = m.inv_motor_tau * g_rotor_dot
+        g_rotor = torch.addcmul(g_r - g_cmd, rotor, g_r2, value=2.0)
         g_s = torch.cat((torch.zeros_like(g_pos), g_vel, g_x, g_rotor))
-        return g_s, m.inv_motor_tau * g_rotor_dot
+        return g_s, g_cmd
 
     def command_vjp(self, cache: Cache, g_cmd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(grad of s, grad of the set point) for the rotor command gradient ``g_cmd`` (4, N)."""
@@ -80,10 +92,9 @@ class CtbrStep:
         n = g_cmd.shape[1]
         inside = (thrust >= c.low) & (thrust <= c.high)
         g_thrust = torch.where(inside, 0.5 * g_cmd / root, torch.zeros_like(g_cmd))
-        g_features = c.state_matrix.T @ g_thrust
-        g_outer = g_features[11:].reshape(3, 3, n)
-        g_omega = g_features[:3] + (g_outer * omega[None]).sum(1) + (g_outer * omega[:, None]).sum(0)
-        g_rotor = g_features[3:7] + 2 * rotor * g_features[7:11]
+        g_omega, g_r, g_r2 = (self.loop_linear_t @ g_thrust).split((3, 4, 4))
+        g_omega = torch.addmm(g_omega, self.loop_pair_matrix, (g_thrust[:, None] * omega[None]).reshape(12, n))
+        g_rotor = torch.addcmul(g_r, rotor, g_r2, value=2.0)
         g_s = torch.cat((torch.zeros(10, n, dtype=g_cmd.dtype, device=g_cmd.device), g_omega, g_rotor))
         return g_s, g_thrust
 
