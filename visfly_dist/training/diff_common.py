@@ -231,10 +231,13 @@ class EpisodeLog:
 
     def dump(self, timesteps: int, extra: dict[str, float]) -> None:
         """Record ``extra`` (``losses/...``) and the charts at ``timesteps``; a curve row when episodes exist."""
-        sps = timesteps / max(time.perf_counter() - self._t0, 1e-9)
+        elapsed = time.perf_counter() - self._t0
+        sps = timesteps / max(elapsed, 1e-9)
         for key, value in extra.items():
             self.logger.record(key, value)
         self.logger.record("charts/steps_per_second", sps)
+        self.logger.record("time/total_timesteps", timesteps)
+        self.logger.record("time/time_elapsed", elapsed)
         if self.episodes:
             s = self.summary()
             for key, value in s.items():
