@@ -36,7 +36,9 @@ class Quadrotor:
     Speed: on CPU run torch single-threaded (``torch.set_num_threads(1)``) in the process that
     steps the batch. Each op here lasts microseconds; with a second thread MKL's pool makes small
     matmuls take milliseconds whenever the other core is busy. ``config.compile`` fuses the step
-    (about 5x faster at 1,000 agents after a compile of a minute or so).
+    (about 5x faster at 1,000 agents after a compile of a minute or so). With gradients, CTBR
+    steps are one autograd node with a hand-written reverse pass (``dynamics.adjoint``, on by
+    default: ``config.adjoint``), unless airframe parameters require grad.
 
     Args:
         config: simulation and controller settings.

@@ -1,4 +1,4 @@
-"""``visfly-dist train TASK``: PPO on a task, with logs, checkpoints and a success curve.
+"""``visfly-dist train TASK``: PPO (or ``--algo bptt|shac``) on a task, with logs, checkpoints and a success curve.
 
 Example::
 
@@ -8,8 +8,9 @@ Example::
     visfly-dist train hover --algo bptt --horizon 32 --lr 1e-3   # through the dynamics (or shac)
 
 Defaults depend on the task (``visfly_dist.training.config.TASK_DEFAULTS``); the resolved config is
-printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` for what a
-run writes, and :mod:`visfly_dist.training.extractors` for training with your own algorithm.
+printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` (and
+:mod:`visfly_dist.training.bptt`) for what a run writes, and :mod:`visfly_dist.training.extractors`
+for training with your own algorithm.
 """
 
 from __future__ import annotations
