@@ -90,3 +90,11 @@ def test_a_worker_killed_mid_window_truncates_it_and_training_goes_on() -> None:
         assert again.steps == 8 and again.lost_agents == 0
     finally:
         env.close()
+
+
+def test_bad_algo_and_horizon_are_reported_together() -> None:
+    from visfly_dist.errors import ConfigError
+    from visfly_dist.training.config import TrainConfig
+
+    with pytest.raises(ConfigError, match=r"algo='sac' must be one of .*horizon=0 must be an int >= 1"):
+        TrainConfig(task="hover", algo="sac", horizon=0).resolved().validate()
