@@ -90,17 +90,3 @@ def test_airframe_parameters_with_grad_take_the_autograd_path():
     fd = (height(torch.tensor(0.5 + eps, dtype=F64))[0] - height(torch.tensor(0.5 - eps, dtype=F64))[0]) / (2 * eps)
     assert float(grad) != 0 and float(grad) == pytest.approx(float(fd), rel=1e-5)
 
-
-@pytest.mark.slow
-def test_compiled_adjoint_matches_eager_adjoint():
-    """``compile=True`` compiles the adjoint's forward and backward (slow: ~1 min of compiling)."""
-    grads = []
-    for compile in (False, True):
-        quad = Quadrotor(DynamicsConfig(controller="ctbr", compile=compile), num_agents=4)
-        pos, vel, quat, omega, action = (x.float().requires_grad_() for x in _start(4, seed=1))
-        state = quad.initial_state(pos=pos + 1, vel=vel, quat=quat, omega=omega)
-        for _ in range(3):
-            state = quad.step(state, action)
-        grads.append(torch.autograd.grad(state.pos.sum() + state.quat.sum(), (vel, action)))
-    for a, b in zip(*grads):
-        assert torch.allclose(a, b, rtol=1e-4, atol=1e-5)

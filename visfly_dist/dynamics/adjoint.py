@@ -37,17 +37,12 @@ class CtbrStep:
         h: substep length, s.
         rk4: RK4 (else explicit Euler).
         ground: apply the ground reaction after each substep.
-        compile: run ``forward`` and ``backward`` through ``torch.compile`` (no autograd inside, so
-            each compiles as a plain graph; the first call of each batch size compiles, slowly).
     """
 
     def __init__(self, model: RigidBodyModel, controller: CollectiveThrustBodyRate, substeps: int, h: float,
-                 rk4: bool, ground: bool, compile: bool = False) -> None:
+                 rk4: bool, ground: bool) -> None:
         self.m, self.c = model, controller
         self.substeps, self.h, self.rk4, self.ground = substeps, h, rk4, ground
-        if compile:
-            self.forward = torch.compile(self.forward, fullgraph=True, dynamic=False)
-            self.backward = torch.compile(self.backward, fullgraph=True, dynamic=False)
         kw = dict(dtype=model.dtype, device=model.device)
         self.action_scale = torch.tensor([0.5 * controller.max_collective] + [controller.max_rate] * 3, **kw)[:, None]
         self.drag_slope_quadratic = 2 * model.drag_quadratic
