@@ -34,8 +34,8 @@ class DynamicsConfig:
         check_actions: check every action's shape and finiteness in ``step`` (one reduction).
         compile: run the control step through ``torch.compile`` (first steps compile, slowly).
         adjoint: with gradients, run the CTBR step as one autograd node with a hand-written reverse
-            pass (``dynamics.adjoint``; about 2x faster at 100 agents). Used unless compiling
-            or differentiating airframe parameters; False forces plain autograd.
+            pass (``dynamics.adjoint``; about 2x faster at 100 agents). Used up to 4,096 agents,
+            unless compiling or differentiating airframe parameters; False forces plain autograd.
     """
 
     controller: str = "ctbr"

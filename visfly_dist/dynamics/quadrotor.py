@@ -16,6 +16,7 @@ from visfly_dist.errors import ConfigError
 
 Tensors = tuple[torch.Tensor, ...]
 RECOMPILE_LIMIT = 64
+ADJOINT_MAX_AGENTS = 4096
 
 
 class Quadrotor:
@@ -77,10 +78,12 @@ class Quadrotor:
                                           config.position_origin)
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
         self._adjoint: CtbrStep | None = None
-        # Compiled, autograd's own graph of the fused step is faster than the adjoint's many
-        # saved tensors (measured: about 2-4x at 100-1,000 agents), so the adjoint is eager only.
+        # Compiled, autograd's own graph of the step is faster than the adjoint's many saved
+        # tensors (measured: about 2-4x at 100-1,000 agents), so the adjoint is eager only; and
+        # past a few thousand agents its dense matmuls cost more than autograd's bookkeeping saves
+        # (measured: 0.8x at 10,000, 1.6x at 1,000, 1.8-2x at 100).
         if config.adjoint and config.controller == "ctbr" and not config.compile \
-                and not _any_requires_grad(self.model, self.controller):
+                and num_agents <= ADJOINT_MAX_AGENTS and not _any_requires_grad(self.model, self.controller):
             self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
                                      config.integrator == "rk4", config.ground)
         self._advance: Callable[..., Tensors] = self._advance_eager
