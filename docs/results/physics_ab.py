@@ -1,8 +1,13 @@
 """Interleaved A/B of bench physics' rollout from two trees, timed by process CPU time (robust to
-other processes on a shared machine) and wall time; best of reps, drone-seconds per second."""
+other processes on a shared machine) and wall time; best of reps, drone-seconds per second.
+
+    git archive f9a2a03 visfly_dist | tar -x -C /tmp/before
+    python docs/results/physics_ab.py /tmp/before . 5
+"""
 import sys, time, torch
 torch.set_num_threads(1)
-reps = int(sys.argv[1]) if len(sys.argv) > 1 else 5
+before_tree, after_tree = sys.argv[1], sys.argv[2]
+reps = int(sys.argv[3]) if len(sys.argv) > 3 else 5
 def load(root):
     for m in [k for k in sys.modules if k.startswith("visfly_dist")]: del sys.modules[m]
     sys.path.insert(0, root)
@@ -10,7 +15,7 @@ def load(root):
     import visfly_dist.dynamics as d
     sys.path.pop(0)
     return p, d
-trees = {"before": load("/tmp/i12/base"), "after": load("/work/wt/issue12")}
+trees = {"before": load(before_tree), "after": load(after_tree)}
 res = {}
 for rep in range(reps):
     for name, (p, d) in trees.items():
