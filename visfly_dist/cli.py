@@ -16,7 +16,7 @@ from visfly_dist import __version__
 from visfly_dist.errors import VisflyError
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "train": ("visfly_dist.training.train_cli", "train a flight policy (PPO) on a task"),
+    "train": ("visfly_dist.training.train_cli", "train a flight policy (PPO, BPTT or SHAC) on a task"),
     "eval": ("visfly_dist.training.eval_cli", "evaluate a checkpoint: success rate and a video"),
     "worker": ("visfly_dist.scene_worker.cli", "serve scenes (render + obstacle queries) over Zenoh"),
     "router": ("visfly_dist.aggregator.router_cli", "run a Zenoh router for a multi-machine pool"),

@@ -33,6 +33,9 @@ class DynamicsConfig:
         position_origin: world point, m, that PS actions are relative to.
         check_actions: check every action's shape and finiteness in ``step`` (one reduction).
         compile: run the control step through ``torch.compile`` (first steps compile, slowly).
+        adjoint: with gradients, run the CTBR step as one autograd node with a hand-written reverse
+            pass (``dynamics.adjoint``; about 2x faster at 100 agents). Used up to 4,096 agents,
+            unless compiling or differentiating airframe parameters; False forces plain autograd.
     """
 
     controller: str = "ctbr"
@@ -46,6 +49,7 @@ class DynamicsConfig:
     position_origin: Sequence[float] = (0.0, 0.0, 0.0)
     check_actions: bool = True
     compile: bool = False
+    adjoint: bool = True
 
     def __post_init__(self) -> None:
         problems = self.problems()

@@ -80,6 +80,9 @@ class CollectiveThrustBodyRate(Controller):
     ``u = kp (w_des - w) - kd dw/dt`` is the commanded angular acceleration; ``dw/dt`` comes from the
     current rotor speeds. Without motor lag the rotors answer at once, ``dw/dt = u``, and the loop
     solves to ``u = kp / (1 + kd) (w_des - w)``.
+
+    The loop is linear in ``[w; r; r^2; w outer w]`` (r the rotor speeds), so its rotor thrusts, and
+    their square-root inverse, fold into one matrix: the inner loop is one matmul per substep.
     """
 
     def __init__(self, model: RigidBodyModel, airframe: Airframe) -> None:
@@ -87,24 +90,41 @@ class CollectiveThrustBodyRate(Controller):
         g = airframe.gains
         self.max_collective = float(airframe.max_collective_accel)
         self.max_rate = float(airframe.max_body_rate)
-        kp = _column(g.rate_p, model)
+        kp = _column(g.rate_p, model).T                                     # (1, 3)
         kd = torch.as_tensor(g.rate_d, dtype=model.dtype, device=model.device)
-        self.kd = kd if model.motor_lag else None
-        self.kp = kp if model.motor_lag else kp / (1 + kd)
+        if not model.motor_lag:
+            kp, kd = kp / (1 + kd), torch.zeros_like(kd)
+        # Thrusts T = M0 c + M1 (kp (w_des - w) - kd (mix_1 T(r) + G ww) - G ww), with M = mix^-1;
+        # kept as T' = (T - c0) / a, the form ``rotor_speed_for`` takes the square root of.
+        m = model
+        inv_a = 1 / m.thrust_a
+        m0, m1 = m.mix_inverse[:, :1], m.mix_inverse[:, 1:]
+        k = -kd * (m1 @ m.mix[1:])                                          # on the thrusts T(r)
+        self.setpoint_matrix = inv_a * torch.cat((m0, m1 * kp), dim=1)      # on [c; w_des]
+        self.state_matrix = inv_a * torch.cat((-m1 * kp, k * m.thrust_b, k * m.thrust_a,
+                                               -(1 + kd) * (m1 @ m.gyro)), dim=1)
+        self.state_bias = inv_a * m.thrust_c * (k.sum(1, keepdim=True) - 1)
+        self.half_b = m.thrust_b * inv_a / 2
+        self.low = (m.thrust_min - m.thrust_c) * inv_a
+        self.high = (m.thrust_max - m.thrust_c) * inv_a
 
     def prepare(self, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
         collective = (action[:1] + 1) * (0.5 * self.max_collective)
-        return collective, action[1:] * self.max_rate
+        command = torch.cat((collective, action[1:] * self.max_rate))
+        return (torch.addmm(self.state_bias, self.setpoint_matrix, command),)
 
     def rotor_command(self, s: torch.Tensor, setpoint: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        collective, rate = setpoint
-        _, _, _, omega, rotor = unpack(s)
-        u = self.kp * (rate - omega)
-        if self.kd is not None:
-            angular_accel = (self.model.mix[1:] @ self.model.thrust(rotor)
-                             + self.model.gyro_accel(omega))
-            u = u - self.kd * angular_accel
-        return self._rotor_speeds(collective, u, omega)
+        return self.command_and_cache(s, setpoint[0])[0]
+
+    def command_and_cache(self, s: torch.Tensor, setpoint: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        """Rotor commands (4, N) and what the reverse pass needs (see ``adjoint``): body rates, rotor
+        speeds, the unclamped thrust term and the square root."""
+        _, omega, rotor = s.split((10, 3, 4))
+        n = s.shape[1]
+        features = torch.cat((omega, rotor, rotor * rotor, (omega[:, None] * omega[None]).reshape(9, n)))
+        thrust = torch.addmm(setpoint, self.state_matrix, features)
+        root = (thrust.clamp(self.low, self.high) + self.half_b * self.half_b).sqrt()
+        return root - self.half_b, (omega, rotor, thrust, root)
 
     def hover_action(self) -> list[float]:
         return [2 * GRAVITY / self.max_collective - 1, 0.0, 0.0, 0.0]

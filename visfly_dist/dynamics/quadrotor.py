@@ -6,6 +6,7 @@ from typing import Callable
 
 import torch
 
+from visfly_dist.dynamics.adjoint import CtbrStep, CtbrStepFunction
 from visfly_dist.dynamics.airframe import Airframe, load_airframe
 from visfly_dist.dynamics.config import DynamicsConfig
 from visfly_dist.dynamics.controllers import make_controller
@@ -15,6 +16,7 @@ from visfly_dist.errors import ConfigError
 
 Tensors = tuple[torch.Tensor, ...]
 RECOMPILE_LIMIT = 64
+ADJOINT_MAX_AGENTS = 4096
 
 
 class Quadrotor:
@@ -35,7 +37,9 @@ class Quadrotor:
     Speed: on CPU run torch single-threaded (``torch.set_num_threads(1)``) in the process that
     steps the batch. Each op here lasts microseconds; with a second thread MKL's pool makes small
     matmuls take milliseconds whenever the other core is busy. ``config.compile`` fuses the step
-    (about 5x faster at 1,000 agents after a compile of a minute or so).
+    (about 5x faster at 1,000 agents after a compile of a minute or so). With gradients, CTBR
+    steps are one autograd node with a hand-written reverse pass (``dynamics.adjoint``, on by
+    default: ``config.adjoint``), unless airframe parameters require grad.
 
     Args:
         config: simulation and controller settings.
@@ -73,6 +77,15 @@ class Quadrotor:
         self.controller = make_controller(config.controller, self.model, self.airframe,
                                           config.position_origin)
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
+        self._adjoint: CtbrStep | None = None
+        # Compiled, autograd's own graph of the step is faster than the adjoint's many saved
+        # tensors (measured: about 2-4x at 100-1,000 agents), so the adjoint is eager only; and
+        # past a few thousand agents its dense matmuls cost more than autograd's bookkeeping saves
+        # (measured: 0.8x at 10,000, 1.6x at 1,000, 1.8-2x at 100).
+        if config.adjoint and config.controller == "ctbr" and not config.compile \
+                and num_agents <= ADJOINT_MAX_AGENTS and not _any_requires_grad(self.model, self.controller):
+            self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
+                                     config.integrator == "rk4", config.ground)
         self._advance: Callable[..., Tensors] = self._advance_eager
         if config.compile:
             # All instances share one code object, and each batch size, grad mode and
@@ -137,8 +150,11 @@ class Quadrotor:
         queue = state.action_queue
         if queue.shape[1] > 0:
             action, queue = queue[:, 0], torch.cat((queue[:, 1:], action[:, None]), dim=1)
-        pos, vel, quat, omega, rotor, contact = self._advance(
-            state.pos, state.vel, state.quat, state.omega, state.rotor, action)
+        inputs = (state.pos, state.vel, state.quat, state.omega, state.rotor, action)
+        advance = self._advance
+        if self._adjoint is not None and torch.is_grad_enabled() and any(x.requires_grad for x in inputs):
+            advance = self._advance_adjoint
+        pos, vel, quat, omega, rotor, contact = advance(*inputs)
         return QuadState(pos=pos, vel=vel, quat=quat, omega=omega, rotor=rotor,
                          ground_contact=contact, action_queue=queue)
 
@@ -155,22 +171,48 @@ class Quadrotor:
 
     def _advance_eager(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
                        rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
-        """The control step on plain tensors (compiled as a whole with ``config.compile``)."""
+        """The control step on plain tensors, recorded op by op by autograd (compiled as a whole
+        with ``config.compile``)."""
+        s, action = self._pack(pos, vel, quat, omega, rotor, action)
+        return self._unpack(*self._substeps(s, action))
+
+    def _advance_adjoint(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
+                         rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
+        """The control step with gradients, as one autograd node (``dynamics.adjoint``)."""
+        s, action = self._pack(pos, vel, quat, omega, rotor, action)
+        return self._unpack(*CtbrStepFunction.apply(s, action.contiguous(), self._adjoint))
+
+    def _pack(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
+              rotor: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The flat component-major state (17, N) and clamped actions (4, N)."""
         s = torch.cat((pos, vel, quat, omega, rotor), dim=1).T.contiguous()
-        setpoint = self.controller.prepare(action.to(self.dtype).clamp(-1.0, 1.0).T)
-        h = self.config.sim_dt
+        return s, action.to(self.dtype).clamp(-1.0, 1.0).T
+
+    @staticmethod
+    def _unpack(s: torch.Tensor, contact: torch.Tensor) -> Tensors:
+        """Batch-first components of a flat state, the quaternion renormalised, and the contacts."""
+        pos, vel, quat, omega, rotor = unpack(s)
+        s = torch.cat((pos, vel, quat / quat.norm(dim=0, keepdim=True), omega, rotor)).T.contiguous()
+        return (*s.split(ROWS, dim=1), contact)
+
+    def _substeps(self, s: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The physics substeps of one control step on the flat state (recorded by autograd)."""
+        setpoint = self.controller.prepare(action)
         contact = torch.zeros(s.shape[1], dtype=torch.bool, device=s.device)
         for _ in range(self.config.substeps):
             rotor_cmd = self.controller.rotor_command(s, setpoint)
             if not self.config.motor_lag:
                 s = torch.cat((s[:ROTOR_ROW], rotor_cmd))
-            s = self._integrate(self.model, s, rotor_cmd, h)
+            s = self._integrate(self.model, s, rotor_cmd, self.config.sim_dt)
             contact = contact | (s[2] <= 0)
             if self.config.ground:
                 s = _ground_reaction(s)
-        pos, vel, quat, omega, rotor = unpack(s)
-        s = torch.cat((pos, vel, quat / quat.norm(dim=0, keepdim=True), omega, rotor)).T.contiguous()
-        return (*s.split(ROWS, dim=1), contact)
+        return s, contact
+
+
+def _any_requires_grad(*objects: object) -> bool:
+    """Whether a tensor attribute of any of ``objects`` requires grad (airframe parameters, wind)."""
+    return any(isinstance(v, torch.Tensor) and v.requires_grad for o in objects for v in vars(o).values())
 
 
 def _ground_reaction(s: torch.Tensor) -> torch.Tensor:

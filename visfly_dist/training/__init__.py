@@ -4,6 +4,8 @@
   ``visfly_policy_kwargs()`` for any SB3 ``MultiInputPolicy``;
 - ``config`` / ``ppo`` / ``train_cli``: ``visfly-dist train TASK`` (PPO with logs, checkpoints,
   success curve);
+- ``bptt`` / ``shac`` / ``diff_common``: ``visfly-dist train TASK --algo bptt|shac``, training through
+  the differentiable dynamics (``train_bptt(TrainConfig(...))`` / ``train_shac`` from Python);
 - ``evaluation`` / ``video`` / ``eval_cli``: ``visfly-dist eval TASK --checkpoint PATH``;
 - ``callbacks`` / ``checkpoints``: the pieces a run is made of.
 

@@ -16,6 +16,7 @@ from typing import Any
 from visfly_dist.errors import ConfigError
 
 BACKBONES = ("visfly-cnn", "resnet-tiny")
+ALGOS = ("ppo", "bptt", "shac")
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # Budgets for about 10-15 minutes on a shared 2-core CPU host: navigation measured at about
@@ -80,6 +81,9 @@ class TrainConfig:
             update, see :mod:`visfly_dist.training.overlap`). Off by default: on hover (20k steps,
             short rollouts) the lag cost most of what PPO learned; measure it on your task.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
+        algo: ``ppo``, or ``bptt`` / ``shac`` (differentiable, through the dynamics; they use
+            ``lr``, ``gamma``, ``horizon``, and SHAC's critic ``gae_lambda``, ``n_epochs``, ``batch_size``).
+        horizon: BPTT/SHAC window length, steps (the graph is cut between windows).
     """
 
     task: str
@@ -107,6 +111,8 @@ class TrainConfig:
     progress: bool = True
     overlap: bool = False
     overrides: dict[str, Any] = field(default_factory=dict)
+    algo: str = "ppo"
+    horizon: int = 32
 
     def resolved(self) -> "TrainConfig":
         """A copy with task defaults filled in and ``out`` set."""
@@ -139,6 +145,10 @@ class TrainConfig:
         for name in ("gamma", "gae_lambda"):
             if not 0 < float(getattr(self, name)) <= 1:
                 out.append(f"{name}={getattr(self, name)!r} must be in (0, 1]")
+        if self.algo not in ALGOS:
+            out.append(f"algo={self.algo!r} must be one of {ALGOS}")
+        if not isinstance(self.horizon, int) or isinstance(self.horizon, bool) or self.horizon < 1:
+            out.append(f"horizon={self.horizon!r} must be an int >= 1")
         if self.backbone not in BACKBONES:
             out.append(f"backbone={self.backbone!r} must be one of {BACKBONES}")
         return out

@@ -1,14 +1,16 @@
-"""``visfly-dist train TASK``: PPO on a task, with logs, checkpoints and a success curve.
+"""``visfly-dist train TASK``: PPO (or ``--algo bptt|shac``) on a task, with logs, checkpoints and a success curve.
 
 Example::
 
     visfly-dist train navigation                      # task defaults, local workers
     visfly-dist train hover --timesteps 50000 --num-envs 8 --set max_episode_steps=128
     visfly-dist train navigation --connect tcp/10.0.0.5:7447 --run-id exp1 --workers 0
+    visfly-dist train hover --algo bptt --horizon 32 --lr 1e-3   # through the dynamics (or shac)
 
 Defaults depend on the task (``visfly_dist.training.config.TASK_DEFAULTS``); the resolved config is
-printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` for what a
-run writes, and :mod:`visfly_dist.training.extractors` for training with your own algorithm.
+printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` (and
+:mod:`visfly_dist.training.bptt`) for what a run writes, and :mod:`visfly_dist.training.extractors`
+for training with your own algorithm.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 import argparse
 
 from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
-from visfly_dist.training.config import BACKBONES, TrainConfig, parse_override
+from visfly_dist.training.config import ALGOS, BACKBONES, TrainConfig, parse_override
 
 
 def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
@@ -57,6 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
+    parser.add_argument("--algo", choices=ALGOS, default="ppo", help="ppo (default), or bptt / shac through the dynamics")
+    parser.add_argument("--horizon", type=int, default=32, help="bptt/shac window, steps (default 32)")
     parser.set_defaults(func=run)
 
 
@@ -86,11 +90,18 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         overlap=args.overlap,
         progress=not args.quiet,
         overrides=with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config),
+        algo=args.algo,
+        horizon=args.horizon,
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    from visfly_dist.training.ppo import train
-
-    result = train(config_from_args(args))
+    cfg = config_from_args(args)
+    if cfg.algo == "bptt":
+        from visfly_dist.training.bptt import train_bptt as train
+    elif cfg.algo == "shac":
+        from visfly_dist.training.shac import train_shac as train
+    else:
+        from visfly_dist.training.ppo import train
+    result = train(cfg)
     return 130 if result.interrupted else 0

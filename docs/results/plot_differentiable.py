@@ -1,0 +1,69 @@
+"""Plot the mean return of several ``visfly-dist train`` runs on one figure, and print the env steps
+and wall time each took to first reach a given return.
+
+    python docs/results/plot_differentiable.py OUT.png --target 50 ppo=runs/ppo-hover bptt=runs/bptt-hover ...
+
+Reads each run folder's ``success_curve.csv`` (return over the last 100 episodes against env steps)
+and ``progress.csv`` (``charts/steps_per_second``, the run's average so far, gives the wall time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+from matplotlib import pyplot as plt  # noqa: E402
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def wall_seconds(run: Path, steps: int) -> float:
+    """Wall seconds the run took to ``steps`` env steps, from its progress log (``time/*`` columns,
+    else the run's final average steps per second)."""
+    rows = read_rows(run / "progress.csv")
+    for row in rows:
+        if row.get("time/total_timesteps") and float(row["time/total_timesteps"]) >= steps and row.get("time/time_elapsed"):
+            return float(row["time/time_elapsed"])
+    rates = [float(r["charts/steps_per_second"]) for r in rows if r.get("charts/steps_per_second")]
+    return steps / rates[-1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("runs", nargs="+", help="LABEL=RUN_FOLDER")
+    parser.add_argument("--target", type=float, required=True, help="return to report steps and time to")
+    parser.add_argument("--title", default="hover from state")
+    args = parser.parse_args()
+    fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    for item in args.runs:
+        label, folder = item.split("=", 1)
+        run = Path(folder)
+        curve = read_rows(run / "success_curve.csv")
+        steps = [int(r["timesteps"]) for r in curve]
+        returns = [float(r["mean_return"]) for r in curve]
+        ax.plot(steps, returns, label=label)
+        hit = next((i for i, r in enumerate(returns) if r >= args.target), None)
+        final = f"final return {returns[-1]:.1f} at {steps[-1]:,} steps, {wall_seconds(run, steps[-1]):.0f} s"
+        if hit is None:
+            print(f"{label}: never reached {args.target}; {final}")
+        else:
+            print(f"{label}: return >= {args.target} first at {steps[hit]:,} env steps, "
+                  f"{wall_seconds(run, steps[hit]):.0f} s wall; {final}")
+    ax.axhline(args.target, color="grey", lw=0.8, ls="--")
+    ax.set(xlabel="env steps (all agents)", ylabel="mean return (last 100 episodes)", title=args.title)
+    ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}k")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.savefig(args.out, dpi=90)
+
+
+if __name__ == "__main__":
+    main()
