@@ -37,6 +37,40 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
 
+class UpdateThreadsPPO(PPO):
+    """Plain SB3 PPO that may give its update more torch threads (the scene workers are idle then),
+    and reports its phase times.
+
+    During rollouts torch stays at the thread count it was given (one, so it does not fight the
+    local workers for the cores); :meth:`train` sets ``update_threads`` (default: unchanged).
+    """
+
+    def __init__(self, *args: Any, update_threads: int | None = None, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.update_threads = update_threads
+        self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0}
+
+    def _excluded_save_params(self) -> list[str]:
+        return super()._excluded_save_params() + ["phase_seconds"]
+
+    def collect_rollouts(self, *args: Any, **kwargs: Any) -> bool:
+        t0 = time.perf_counter()
+        try:
+            return super().collect_rollouts(*args, **kwargs)
+        finally:
+            self.phase_seconds["rollout_s"] += time.perf_counter() - t0
+
+    def train(self) -> None:
+        rollout_threads = torch.get_num_threads()
+        torch.set_num_threads(self.update_threads or rollout_threads)
+        t0 = time.perf_counter()
+        try:
+            super().train()
+        finally:
+            torch.set_num_threads(rollout_threads)
+            self.phase_seconds["update_s"] += time.perf_counter() - t0
+
+
 class OverlappedPPO(PPO):
     """SB3 PPO with rollout collection overlapped with the update (see the module docstring)."""
 

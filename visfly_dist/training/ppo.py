@@ -40,7 +40,7 @@ from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.memory import keep_freed_memory
-from visfly_dist.training.overlap import OverlappedPPO
+from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
 
 
 @dataclass
@@ -98,9 +98,11 @@ def build_env(cfg: TrainConfig) -> VecEnv:
 def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
 
-    With ``cfg.overlap`` it is :class:`OverlappedPPO`: the next rollout is collected while PPO learns.
+    It is :class:`UpdateThreadsPPO` (plain PPO whose update uses every core while the workers are
+    idle), or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
     """
-    model = (OverlappedPPO if cfg.overlap else PPO)(
+    extra = {} if cfg.overlap else {"update_threads": cfg.update_threads}
+    model = (OverlappedPPO if cfg.overlap else UpdateThreadsPPO)(
         "MultiInputPolicy",
         env,
         learning_rate=cfg.lr,
@@ -115,6 +117,7 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
         seed=cfg.seed,
         device=cfg.device,
         verbose=0,
+        **extra,
     )
     model.set_logger(configure(str(cfg.out), ["tensorboard", "csv"]))
     return model

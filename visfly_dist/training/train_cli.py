@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", help="run folder (default runs/TASK-<timestamp>)")
     parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads of the trainer (default 1)")
+    parser.add_argument("--update-threads", type=int, default=None, metavar="N",
+                        help="torch CPU threads during PPO updates, when the workers are idle (default: --threads); "
+                             "more helps only on an otherwise idle machine")
     parser.add_argument("--n-steps", type=int, help="rollout steps per env between updates")
     parser.add_argument("--batch-size", type=int, help="PPO minibatch size")
     parser.add_argument("--n-epochs", type=int, default=5, help="passes over each rollout (default 5)")
@@ -78,6 +81,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         out=args.out,
         device=args.device,
         threads=args.threads,
+        update_threads=args.update_threads,
         n_steps=args.n_steps,
         batch_size=args.batch_size,
         lr=args.lr,
