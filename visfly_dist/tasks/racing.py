@@ -81,7 +81,6 @@ class RacingEnv(DroneEnvBase):
         self.gates = torch.tensor(self.config.gates, dtype=torch.float32, device=self.device)
         self.total_gates = len(self.config.gates) * self.config.laps
         self.passed = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
-        self._gate_passed = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         self._prev_distance = torch.zeros(self.num_envs, device=self.device)
 
     def observation_space_dict(self) -> dict[str, spaces.Space]:
@@ -93,33 +92,43 @@ class RacingEnv(DroneEnvBase):
     def spawn_distribution(self) -> Spawn:
         return Spawn.around(self.config.spawn_center, self.config.spawn_half_width, clearance=0.3)
 
-    def next_gate(self, ahead: int = 0) -> torch.Tensor:
-        """``(N, 3)`` centre of the gate ``ahead`` gates after the next one."""
-        return self.gates[(self.passed + ahead) % len(self.gates)]
+    def next_gate(self, ahead: int = 0, passed: torch.Tensor | None = None) -> torch.Tensor:
+        """``(N, 3)`` centre of the gate ``ahead`` gates after the next one (after ``passed`` gates)."""
+        passed = self.passed if passed is None else passed
+        return self.gates[(passed + ahead) % len(self.gates)]
+
+    def gate_distance(self, passed: torch.Tensor | None = None) -> torch.Tensor:
+        """``(N,)`` distance to the next gate, m (differentiable)."""
+        return (self.state.pos - self.next_gate(passed=passed)).norm(dim=1)
+
+    def gate_reached(self) -> torch.Tensor:
+        """``(N,)`` bool: the drone is within ``gate_radius`` of its next gate this step."""
+        return self.gate_distance().detach() < self.config.gate_radius
+
+    def passed_now(self) -> torch.Tensor:
+        """``(N,)`` gates passed, counting the one reached this step."""
+        return self.passed + self.gate_reached().long()
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         self.passed[idx] = 0
-        self._prev_distance[idx] = (self.state.pos - self.next_gate()).norm(dim=1).detach()[idx]
+        self._prev_distance[idx] = self.gate_distance().detach()[idx]
 
     def get_observation(self) -> dict[str, torch.Tensor]:
-        s = self.state
-        gates = torch.stack([to_body(s.quat, self.next_gate(k) - s.pos) for k in (0, 1)], dim=1)
-        progress = (self.passed.float() / self.total_gates)[:, None]
-        return {"state": self.state_vector(self.next_gate()), "gates": gates, "progress": progress,
+        s, passed = self.state, self.passed_now()
+        gates = torch.stack([to_body(s.quat, self.next_gate(k, passed) - s.pos) for k in (0, 1)], dim=1)
+        progress = (passed.float() / self.total_gates).clamp(max=1.0)[:, None]
+        return {"state": self.state_vector(self.next_gate(passed=passed)), "gates": gates, "progress": progress,
                 **self.frame.images}
 
     def get_success(self) -> torch.Tensor:
-        # Gate passing is decided here, once per step, before the reward reads it.
-        distance = (self.state.pos - self.next_gate()).norm(dim=1).detach()
-        self._gate_passed = distance < self.config.gate_radius
-        return (self.passed + self._gate_passed.long()) >= self.total_gates
+        return self.passed_now() >= self.total_gates
 
     def get_reward(self) -> torch.Tensor:
         cfg = self.config
-        distance = (self.state.pos - self.next_gate()).norm(dim=1)
-        progress = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
-        self.passed = self.passed + self._gate_passed.long()
-        self._prev_distance = torch.where(self._gate_passed, (self.state.pos - self.next_gate()).norm(dim=1),
-                                          distance).detach()
-        reward = 0.05 * progress + cfg.gate_bonus * self._gate_passed.float() - 0.002 * self.state.omega.norm(dim=1)
+        progress = progress_speed(self._prev_distance, self.gate_distance(), cfg.ctrl_dt)
+        reward = 0.05 * progress + cfg.gate_bonus * self.gate_reached().float() - 0.002 * self.state.omega.norm(dim=1)
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
+
+    def update_task_state(self) -> None:
+        self.passed = self.passed_now()
+        self._prev_distance = self.gate_distance().detach()
