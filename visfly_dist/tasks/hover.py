@@ -16,13 +16,14 @@ Reward per step (``d`` distance to the target, m), ``reward="ours"`` (default):
 0.002 |omega|``, no terminal terms.
 
 Termination: success at the time limit when the drone stayed within ``success_radius`` (0.3 m) of
-the target for the last ``hold_steps`` (50) steps; failure on collision, or out of bounds (the
+the target for the last ``hold_fraction`` (half) of the episode; failure on collision, or out of bounds (the
 scene's box, or farther than ``max_distance`` (2 m) from the target). Truncation: the time limit
 (``max_episode_steps``, 100 steps of 0.03 s) without success.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,7 +43,7 @@ class HoverConfig(EnvConfig):
         spawn_half_width: spawn box half extents around the target, m.
         max_distance: the episode fails (out of bounds) beyond this distance from the target, m.
         success_radius: success needs the drone this close to the target, m.
-        hold_steps: ... for this many steps at the end of the episode.
+        hold_fraction: ... for this share of ``max_episode_steps`` at the end of the episode.
         fail_penalty: reward subtracted on failure (``reward="ours"``).
         reward: ``ours`` or ``visfly`` (the original's reward).
     """
@@ -53,7 +54,7 @@ class HoverConfig(EnvConfig):
     spawn_half_width: tuple[float, float, float] = (0.5, 0.5, 0.5)
     max_distance: float = 2.0
     success_radius: float = 0.3
-    hold_steps: int = 50
+    hold_fraction: float = 0.5
     fail_penalty: float = 10.0
     reward: str = "ours"
 
@@ -64,8 +65,8 @@ class HoverConfig(EnvConfig):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not value > 0:
                 out.append(f"{name}={value!r} must be a positive number of metres")
-        if not isinstance(self.hold_steps, int) or not 1 <= self.hold_steps <= self.max_episode_steps:
-            out.append(f"hold_steps={self.hold_steps!r} must be an int in [1, max_episode_steps={self.max_episode_steps}]")
+        if not isinstance(self.hold_fraction, (int, float)) or not 0 < self.hold_fraction <= 1:
+            out.append(f"hold_fraction={self.hold_fraction!r} must be in (0, 1]")
         return out
 
 
@@ -79,6 +80,7 @@ class HoverEnv(DroneEnvBase):
         super().__init__(config)
         self.target = torch.tensor(self.config.target, dtype=torch.float32, device=self.device).repeat(self.num_envs, 1)
         self.held = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        self.hold_steps = math.ceil(self.config.hold_fraction * self.config.max_episode_steps)
 
     def _target_of(self, agent: int) -> np.ndarray:
         return metadata_point(self.scene_metadata(agent), "goal", self.config.target)
@@ -116,7 +118,7 @@ class HoverEnv(DroneEnvBase):
 
     def get_success(self) -> torch.Tensor:
         at_end = self.episode_step >= self.config.max_episode_steps
-        return at_end & (self._held_now() >= self.config.hold_steps)
+        return at_end & (self._held_now() >= self.hold_steps)
 
     def get_reward(self) -> torch.Tensor:
         s, d = self.state, self.distance()

@@ -19,7 +19,7 @@ drone's state (BPTT/SHAC can use it): ``reward="ours"`` (default): ``1 - 0.5 d -
 ``0.1 - (0.1 / 9) d - 1e-5 |q - q_level| - 0.002 |v| - 0.002 |omega|``.
 
 Termination: success at the time limit when the drone stayed within ``success_distance`` (0.5 m)
-of the target for the last ``hold_steps`` (100) steps; failure on collision, or out of bounds (the
+of the target for the last ``hold_fraction`` (40 %) of the episode; failure on collision, or out of bounds (the
 scene's box, or farther than ``max_distance`` (3 m) from the target: the target is lost).
 Truncation: the time limit (256 steps of 0.03 s) without success.
 """
@@ -54,7 +54,7 @@ class TrackingConfig(EnvConfig):
         future_dt: time between observed target positions, s.
         spawn_half_width: spawn box half extents around the target's start, m.
         success_distance: success needs the drone this close to the target, m ...
-        hold_steps: ... for this many steps at the end of the episode.
+        hold_fraction: ... for this share of ``max_episode_steps`` at the end of the episode.
         max_distance: the episode fails (out of bounds) beyond this distance from the target, m.
         fail_penalty: reward subtracted on failure (``reward="ours"``).
         reward: ``ours`` or ``visfly`` (the original's reward).
@@ -69,7 +69,7 @@ class TrackingConfig(EnvConfig):
     future_dt: float = 0.1
     spawn_half_width: tuple[float, float, float] = (0.3, 0.3, 0.2)
     success_distance: float = 0.5
-    hold_steps: int = 100
+    hold_fraction: float = 0.4
     max_distance: float = 3.0
     fail_penalty: float = 10.0
     reward: str = "ours"
@@ -85,8 +85,8 @@ class TrackingConfig(EnvConfig):
             out.append(f"path_speed={self.path_speed!r} must be a finite number of rad/s")
         if not isinstance(self.future_points, int) or self.future_points < 1:
             out.append(f"future_points={self.future_points!r} must be an int >= 1")
-        if not isinstance(self.hold_steps, int) or not 1 <= self.hold_steps <= self.max_episode_steps:
-            out.append(f"hold_steps={self.hold_steps!r} must be an int in [1, max_episode_steps={self.max_episode_steps}]")
+        if not isinstance(self.hold_fraction, (int, float)) or not 0 < self.hold_fraction <= 1:
+            out.append(f"hold_fraction={self.hold_fraction!r} must be in (0, 1]")
         return out
 
 
@@ -100,6 +100,7 @@ class TrackingEnv(DroneEnvBase):
         super().__init__(config)
         self.center = torch.tensor(self.config.path_center, dtype=torch.float32, device=self.device).repeat(self.num_envs, 1)
         self.held = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
+        self.hold_steps = math.ceil(self.config.hold_fraction * self.config.max_episode_steps)
 
     def observation_space_dict(self) -> dict[str, spaces.Space]:
         out = super().observation_space_dict()
@@ -170,7 +171,7 @@ class TrackingEnv(DroneEnvBase):
 
     def get_success(self) -> torch.Tensor:
         at_end = self.episode_step >= self.config.max_episode_steps
-        return at_end & (self._held_now() >= self.config.hold_steps)
+        return at_end & (self._held_now() >= self.hold_steps)
 
     def get_reward(self) -> torch.Tensor:
         s, d = self.state, self.distance()

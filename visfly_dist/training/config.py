@@ -76,6 +76,8 @@ class TrainConfig:
         backbone: image backbone of the extractor.
         normalize: running normalisation of vector observations and of rewards (VecNormalize).
         progress: print progress lines.
+        scene_roots: folders scene files may be loaded from (``--scene-root``); ``scenes`` paths
+            must lie under one of them.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
     """
 
@@ -102,13 +104,15 @@ class TrainConfig:
     backbone: str = "visfly-cnn"
     normalize: bool = True
     progress: bool = True
+    scene_roots: tuple[str, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
 
     def resolved(self) -> "TrainConfig":
         """A copy with task defaults filled in and ``out`` set."""
         defaults = TASK_DEFAULTS.get(self.task, FALLBACK_DEFAULTS)
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
-        cfg = replace(self, connect=tuple(self.connect), overrides=dict(self.overrides), **filled)
+        cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
+                      overrides=dict(self.overrides), **filled)
         if cfg.out is None:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg
@@ -137,6 +141,21 @@ class TrainConfig:
                 out.append(f"{name}={getattr(self, name)!r} must be in (0, 1]")
         if self.backbone not in BACKBONES:
             out.append(f"backbone={self.backbone!r} must be one of {BACKBONES}")
+        return out + self._scene_problems()
+
+    def _scene_problems(self) -> list[str]:
+        """Missing ``--scene-root`` folders, and scene paths outside every root."""
+        from visfly_dist.aggregator.dataset import expand_sources
+
+        out = [f"--scene-root {r!r} is not a folder" for r in self.scene_roots if not Path(r).is_dir()]
+        scenes = self.overrides.get("scenes", ())
+        scenes = (scenes,) if isinstance(scenes, str) else tuple(scenes)
+        paths = tuple(str(s) for s in scenes if not str(s).startswith("gen:"))
+        if paths and not out:
+            try:
+                expand_sources(paths, tuple(self.scene_roots))
+            except ConfigError as exc:
+                out.append(f"{exc} (roots come from --scene-root DIR; e.g. --scene-root . for scenes in this folder)")
         return out
 
     def validate(self) -> "TrainConfig":
@@ -149,6 +168,7 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["connect"] = list(self.connect)
+        d["scene_roots"] = list(self.scene_roots)
         return d
 
     @classmethod
@@ -157,4 +177,4 @@ class TrainConfig:
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise ConfigError(f"training config has unknown keys {sorted(unknown)}; accepted: {sorted(cls.__dataclass_fields__)}")
-        return cls(**{**d, "connect": tuple(d.get("connect", ()))})
+        return cls(**{**d, "connect": tuple(d.get("connect", ())), "scene_roots": tuple(d.get("scene_roots", ()))})

@@ -5,6 +5,7 @@ Example::
     visfly-dist train navigation                      # task defaults, local workers
     visfly-dist train hover --timesteps 50000 --num-envs 8 --set max_episode_steps=128
     visfly-dist train navigation --connect tcp/10.0.0.5:7447 --run-id exp1 --workers 0
+    visfly-dist train navigation --scene-root scenes --set scenes='["my_garage/*.glb"]'
 
 Defaults depend on the task (``visfly_dist.training.config.TASK_DEFAULTS``); the resolved config is
 printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` for what a
@@ -14,12 +15,13 @@ run writes, and :mod:`visfly_dist.training.extractors` for training with your ow
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from visfly_dist.training.config import BACKBONES, TrainConfig, parse_override
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing")
+    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking")
     parser.add_argument("--timesteps", type=int, help="total env steps (default: per task)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: per task)")
     parser.add_argument("--workers", type=int, help="local scene workers to spawn (default: the env's)")
@@ -40,8 +42,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     parser.set_defaults(func=run)
+
+
+def add_scene_root(parser: argparse.ArgumentParser) -> None:
+    """``--scene-root DIR`` (repeatable): folders that scene paths in ``--set scenes=...`` are read from."""
+    parser.add_argument("--scene-root", action="append", default=[], metavar="DIR",
+                        help="folder scene files may be loaded from; scene paths are relative to it (repeatable)")
+
+
+def scene_roots(args: argparse.Namespace) -> tuple[str, ...]:
+    """The ``--scene-root`` folders as absolute paths (a run's config stays valid from any folder)."""
+    return tuple(str(Path(r).resolve()) for r in args.scene_root)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -68,6 +82,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         backbone=args.backbone,
         normalize=not args.no_normalize,
         progress=not args.quiet,
+        scene_roots=scene_roots(args),
         overrides=dict(parse_override(item) for item in args.set),
     )
 
