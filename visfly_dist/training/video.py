@@ -116,11 +116,16 @@ def label(panel: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(img)
 
 
-def gif_duration_ms(fps: float) -> float:
-    """Frame duration for imageio's GIF writer, which takes milliseconds (``1000 / fps``)."""
+def gif_duration_ms(fps: float) -> int:
+    """Frame duration for imageio's GIF writer, which takes milliseconds.
+
+    GIF stores whole centiseconds and Pillow truncates, so ``1000 / fps`` is rounded to the nearest
+    10 ms (``1000 / (1 / 0.03)`` is 29.999... and would become 20 ms); at least 20 ms, because
+    browsers play shorter delays at 100 ms.
+    """
     if not fps > 0:
         raise ValueError(f"fps={fps!r} must be > 0")
-    return 1000.0 / fps
+    return max(20, 10 * round(100.0 / fps))
 
 
 class VideoRecorder:
