@@ -30,11 +30,17 @@ def test_hooks_are_pure(envs, name):
     rng = np.random.default_rng(0)
     for _ in range(3):
         env.step(rng.uniform(-0.3, 0.3, (env.num_envs, 4)).astype(np.float32) + hover(env))
-    before = task_state(env)
-    for hook in HOOKS:
-        first, second = as_tensors(getattr(env, hook)()), as_tensors(getattr(env, hook)())
-        for a, b in zip(first, second, strict=True):
-            assert torch.equal(a, b), f"{name}.{hook} gave different results on a second call"
+    before, config = task_state(env), env.config
+    variants = ("ours", "visfly") if hasattr(config, "reward") else (None,)
+    try:
+        for variant in variants:
+            env.config = config if variant is None else config.replace(reward=variant)
+            for hook in HOOKS:
+                first, second = as_tensors(getattr(env, hook)()), as_tensors(getattr(env, hook)())
+                for a, b in zip(first, second, strict=True):
+                    assert torch.equal(a, b), f"{name}.{hook} ({variant}) gave different results on a second call"
+    finally:
+        env.config = config
     after = task_state(env)
     for key, value in before.items():
         assert torch.equal(value, after[key]), f"{name}: a hook changed {key}"

@@ -72,6 +72,15 @@ def test_eval_reports_both_modes_and_writes_a_gif_of_the_first_episode(trained_r
     assert Image.open(gif).info["duration"] == 30  # the env's 0.03 s step
 
 
+@pytest.mark.parametrize("task", ["racing", "tracking"])
+def test_tiny_training_of_the_other_state_tasks(task: str, tmp_path: Path) -> None:
+    out = tmp_path / task
+    extra = ["--set", "cameras=[]"] if task == "tracking" else []
+    proc = run_cli("train", task, "--timesteps", "256", "--checkpoint-every", "0", "--out", str(out), *TINY, *extra)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "final.zip").is_file() and "done: 256 steps" in proc.stdout
+
+
 def test_eval_refuses_the_training_seed(trained_run: Path) -> None:
     proc = run_cli("eval", "hover", "--checkpoint", str(trained_run / "final.zip"), "--seed", "0")
     assert proc.returncode == 2 and "--seed 0 is the training run's seed" in proc.stderr

@@ -10,9 +10,12 @@
 Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
 
 A gate is passed when the drone comes within ``gate_radius`` of its centre; the next one is then
-the following gate of the loop. Reward per step: ``0.05 *`` progress speed toward the next gate
-(m/s), ``+gate_bonus`` (1) per gate passed, ``-0.002 |omega|``, ``+success_bonus`` (10) on success,
-``-fail_penalty`` (5) on failure. Termination: success after ``laps`` laps; failure on collision,
+the following gate of the loop. Reward per step, ``reward="ours"`` (default): ``0.05 *`` progress
+speed toward the next gate (m/s, finite difference), ``+gate_bonus`` (1) per gate passed,
+``-0.002 |omega|``, ``+success_bonus`` (10) on success, ``-fail_penalty`` (5) on failure.
+``reward="visfly"`` (VisFly's RacingEnv; ``v_g`` velocity toward the next gate, ``v_p`` the rest of
+the velocity, ``d`` the gate's distance): ``0.02 * min(v_g, 15) - 0.02 |v_p| / (d + 1) + 5 *``
+gate passed ``- 0.001 |omega|``, no terminal terms. Termination: success after ``laps`` laps; failure on collision,
 inside an obstacle or out of bounds. Truncation: 512 steps. Spawn: uniform in ``spawn_center ±
 spawn_half_width``, 0.3 m clear.
 """
@@ -27,7 +30,7 @@ from gymnasium import spaces
 
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase, Spawn
-from visfly_dist.tasks.common import progress_speed, to_body, vec3_problem
+from visfly_dist.tasks.common import approach_speed, progress_speed, reward_problem, to_body, vec3_problem
 
 DEFAULT_GATES = ((3.0, 0.0, 1.5), (5.0, 3.0, 2.0), (3.0, 6.0, 1.5), (0.0, 3.0, 1.0))
 
@@ -41,7 +44,8 @@ class RacingConfig(EnvConfig):
         gate_radius: a gate is passed within this distance of its centre, m.
         laps: loops to complete for success.
         spawn_center, spawn_half_width: spawn box, m.
-        gate_bonus, success_bonus, fail_penalty: reward terms.
+        gate_bonus, success_bonus, fail_penalty: reward terms (``reward="ours"``).
+        reward: ``ours`` or ``visfly`` (the original's reward).
     """
 
     scenes: tuple[str, ...] = ("gen:empty",)
@@ -54,9 +58,10 @@ class RacingConfig(EnvConfig):
     gate_bonus: float = 1.0
     success_bonus: float = 10.0
     fail_penalty: float = 5.0
+    reward: str = "ours"
 
     def problems(self) -> list[str]:
-        out = super().problems()
+        out = super().problems() + reward_problem(self.reward)
         if len(self.gates) < 2:
             out.append(f"gates={self.gates!r} must hold at least 2 gate centres")
         for i, g in enumerate(self.gates):
@@ -124,7 +129,13 @@ class RacingEnv(DroneEnvBase):
         return self.passed_now() >= self.total_gates
 
     def get_reward(self) -> torch.Tensor:
-        cfg = self.config
+        cfg, s = self.config, self.state
+        if cfg.reward == "visfly":
+            gate, d = self.next_gate(), self.gate_distance()
+            v_g = approach_speed(s.pos, s.vel, gate)
+            v_p = (s.vel - v_g[:, None] * (gate - s.pos) / (d[:, None] + 1e-6)).norm(dim=1)
+            return (0.02 * v_g.clamp(max=15.0) - 0.02 * v_p / (d + 1.0) + 5.0 * self.gate_reached().float()
+                    - 0.001 * s.omega.norm(dim=1))
         progress = progress_speed(self._prev_distance, self.gate_distance(), cfg.ctrl_dt)
         reward = 0.05 * progress + cfg.gate_bonus * self.gate_reached().float() - 0.002 * self.state.omega.norm(dim=1)
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
