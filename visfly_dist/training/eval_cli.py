@@ -11,7 +11,8 @@ the default) run from the same seed, so they start from the same spawns: ``deter
 the policy's mean action, ``sampled`` draws actions as in training. Each line gives the success
 rate with its Wilson 95 % interval and how the episodes ended. The default seed (12345) differs
 from training's, so generated scenes (seeded from the env seed) and spawns are ones training never
-saw; an equal seed is refused unless ``--allow-training-seed``.
+saw; an equal seed is refused unless ``--allow-training-seed``. Scene files are not drawn from the
+seed: hold some out of training and pass them with ``--scene-root DIR --set scenes='["held_out/*.glb"]'``.
 
 ``--video`` films agent 0 in the first mode: its first episode, or with ``--video-success`` its
 first successful one (its camera image beside a chase camera, at the env's rate; see
