@@ -18,14 +18,16 @@ from visfly_dist.errors import ConfigError
 BACKBONES = ("visfly-cnn", "resnet-tiny")
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
-    # Budgets for about 10-15 minutes on a shared 2-core CPU host: navigation measured at about
-    # 170 env steps/s with PPO updates included (16 envs, 64x64 depth); the state-only tasks (hover,
-    # racing) step about 5x faster; landing and gap crossing render images like navigation.
+    # Budgets for about 5-25 minutes on a shared 2-core CPU host (docs/RESULTS.md has what each
+    # reached): navigation measured at about 170 env steps/s with PPO updates included (16 envs,
+    # 64x64 depth); hover about 450 (100k steps: 0.99 deterministic success), racing about 200;
+    # landing, gap crossing and tracking render images like navigation.
     "navigation": dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512),
     "hover": dict(num_envs=16, timesteps=100_000, n_steps=128, batch_size=512),
     "landing": dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512),
     "gap_crossing": dict(num_envs=15, timesteps=150_000, n_steps=128, batch_size=480),
     "racing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512),
+    "tracking": dict(num_envs=16, timesteps=200_000, n_steps=128, batch_size=512),
 }
 """Task-dependent defaults; tasks not listed here use ``FALLBACK_DEFAULTS``."""
 
