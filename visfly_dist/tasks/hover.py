@@ -16,8 +16,8 @@ Reward per step (``d`` distance to the target, m), ``reward="ours"`` (default):
 0.002 |omega|``, no terminal terms.
 
 Termination: success at the time limit when the drone stayed within ``success_radius`` (0.3 m) of
-the target for the last ``hold_fraction`` (half) of the episode; failure on collision, or out of bounds (the
-scene's box, or farther than ``max_distance`` (2 m) from the target). Truncation: the time limit
+the target for the last ``hold_fraction`` (half) of the episode; failure on collision, or out of
+bounds (the scene's box, or farther than ``max_distance`` (2 m) from the target). Truncation: the time limit
 (``max_episode_steps``, 100 steps of 0.03 s) without success.
 """
 

@@ -19,8 +19,8 @@ drone's state (BPTT/SHAC can use it): ``reward="ours"`` (default): ``1 - 0.5 d -
 ``0.1 - (0.1 / 9) d - 1e-5 |q - q_level| - 0.002 |v| - 0.002 |omega|``.
 
 Termination: success at the time limit when the drone stayed within ``success_distance`` (0.5 m)
-of the target for the last ``hold_fraction`` (40 %) of the episode; failure on collision, or out of bounds (the
-scene's box, or farther than ``max_distance`` (3 m) from the target: the target is lost).
+of the target for the last ``hold_fraction`` (40 %) of the episode; failure on collision, or out
+of bounds (the scene's box, or farther than ``max_distance`` (3 m) from the target: it is lost).
 Truncation: the time limit (256 steps of 0.03 s) without success.
 """
 
