@@ -144,8 +144,8 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
         seed: env seed (spawns, noise); the same seed gives both modes the same starts.
         recorder: when given, films agent ``recorder.agent``: one frame per observation it acts on,
             so the video has as many frames as the filmed episode has steps.
-        film_success: film agent ``recorder.agent``'s episodes until one succeeds (the last one is
-            kept when none does before the evaluation ends); otherwise its first episode.
+        film_success: film agent ``recorder.agent``'s episodes until one succeeds (the last whole
+            one is kept when none does before the evaluation ends); otherwise its first episode.
     """
     if episodes < 1:
         raise ConfigError(f"episodes={episodes!r} must be >= 1")
@@ -155,6 +155,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     counted = np.zeros(n, dtype=np.int64)
     log: list[Episode] = []
     filming, filmed_length, filmed_success = recorder is not None, 0, False
+    last_failure: list[np.ndarray] = []
     env.seed(seed)
     obs = env.reset()
     step, ret = 0, 0.0
@@ -175,13 +176,15 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
                 if filmed_success or not film_success:
                     filming = False
                 else:
-                    recorder.frames.clear()
+                    last_failure, recorder.frames = recorder.frames, []
                     step, ret = 0, 0.0
             if counted[i] < quota and len(log) < episodes:
                 counted[i] += 1
                 log.append(Episode(agent=int(i), scene=sources[int(agent_scene[i])], success=bool(info.get("is_success")),
                                    end_cause=end_cause(info, int(ep["l"]), limit),
                                    episode_return=float(ep["r"]), length=int(ep["l"])))
+    if filming and film_success and last_failure:
+        recorder.frames = last_failure  # no success filmed: keep the last whole episode
     wins = sum(e.success for e in log)
     causes = Counter(e.end_cause for e in log)
     return EvalStats(

@@ -175,6 +175,8 @@ class VideoRecorder:
         """
         import imageio.v2 as imageio
 
+        if not self.frames:
+            raise ValueError("no frames to save: call add() once per observation before save()")
         fps = 1.0 / float(self.env.config.ctrl_dt) if fps is None else float(fps)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
