@@ -1,62 +1,15 @@
 """Every task: builds through make_env, steps with random actions, finite rewards, obs match spaces."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
 
 from visfly_dist import make_env
-from visfly_dist.aggregator import PoolConfig
-from visfly_dist.dynamics import QuadState
 from visfly_dist.errors import ConfigError
 from visfly_dist.tasks import TASKS
 from visfly_dist.tasks.gap_crossing import GapCrossingConfig
-from visfly_dist.tasks.landing import DOWNWARD_RGB, LandingConfig, pad_in_image
-from visfly_dist.tasks.navigation import FORWARD_DEPTH
-
-
-def small(cameras=(), **changes):
-    """Overrides for ``make_env``: tiny images of the task's own cameras, one raycast worker."""
-    changes.setdefault("pool", PoolConfig(num_local_workers=1, backend="raycast", startup_timeout_s=60.0))
-    if cameras:
-        changes["cameras"] = tuple(dataclasses.replace(c, width=16, height=16) for c in cameras)
-    return changes
-
-
-SETTINGS = {
-    "navigation": dict(num_envs=2, **small((FORWARD_DEPTH,), density=0.05)),
-    "hover": dict(num_envs=2, **small()),
-    "landing": dict(num_envs=2, **small((DOWNWARD_RGB,))),
-    "gap_crossing": dict(num_envs=3, **small((FORWARD_DEPTH,))),
-    "racing": dict(num_envs=2, **small()),
-}
-
-
-@pytest.fixture(scope="module")
-def envs():
-    """Task name -> its env, built on first use and shared by the tests of this module."""
-    built = {}
-
-    def get(name):
-        if name not in built:
-            settings = dict(SETTINGS[name])
-            built[name] = make_env(name, num_envs=settings.pop("num_envs"), seed=1, **settings)
-        return built[name]
-
-    yield get
-    for env in built.values():
-        env.close()
-
-
-def place(env, positions):
-    """Teleport every agent (at rest, level) to ``positions``."""
-    fresh = env.quad.initial_state(torch.tensor(positions, dtype=torch.float32))
-    env.state = QuadState.where(torch.ones(env.num_envs, dtype=torch.bool), fresh, env.state)
-
-
-def hover(env):
-    return np.tile(env.quad.hover_action().numpy(), (env.num_envs, 1))
+from visfly_dist.tasks.landing import LandingConfig, pad_in_image
+from tests.tasks.helpers import hover, place
 
 
 @pytest.mark.parametrize("name", list(TASKS))
@@ -112,12 +65,13 @@ def test_pad_in_image_finds_the_dark_square():
 def test_hover_holds_at_the_target_for_a_good_reward(envs):
     env = envs("hover")
     env.reset()
+    assert env.target.tolist() == [[1.0, 0.0, 1.5]] * 2  # gen:empty's metadata goal, not config.target
     place(env, [[1.0, 0.0, 1.5], [1.0, 0.0, 1.5]])
     _, reward, done, _ = env.step(hover(env))
     assert not done.any() and np.all(reward > 0.95)
     place(env, [[1.0, 0.0, 1.5], [1.0, 0.0, 4.0]])  # 2.5 m away: beyond max_distance
     _, reward, done, infos = env.step(hover(env))
-    assert done.tolist() == [False, True] and infos[1]["TimeLimit.truncated"] is False
+    assert done.tolist() == [False, True] and infos[1]["TimeLimit.truncated"] is False and infos[1]["out_of_bounds"]
     assert reward[1] < -9
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import imageio.v2 as imageio
 import pytest
+from PIL import Image
 
 CLI = [sys.executable, "-m", "visfly_dist.cli"]
 TINY = ["--num-envs", "4", "--workers", "1", "--n-steps", "32", "--batch-size", "64", "--set", "max_episode_steps=20"]
@@ -45,25 +46,68 @@ def test_train_writes_config_checkpoints_logs_and_curve(trained_run: Path) -> No
     assert (trained_run / "success_curve.png").stat().st_size > 1000
 
 
-def test_eval_reports_and_writes_a_gif_of_the_first_episode(trained_run: Path, tmp_path: Path) -> None:
+def test_eval_reports_both_modes_and_writes_a_gif_of_the_first_episode(trained_run: Path, tmp_path: Path) -> None:
     gif, report = tmp_path / "hover.gif", tmp_path / "eval.json"
     proc = run_cli("eval", "hover", "--checkpoint", str(trained_run / "final.zip"), "--episodes", "4", "--num-envs", "2",
-                   "--workers", "1", "--deterministic", "--video", str(gif), "--json", str(report))
+                   "--workers", "1", "--video", str(gif), "--json", str(report))
     assert proc.returncode == 0, proc.stderr
-    assert "success rate" in proc.stdout and "collisions" in proc.stdout
+    lines = proc.stdout.splitlines()
+    assert "seed 12345 (training seed 0)" in lines[0]
+    assert lines[1].strip().startswith("deterministic: success") and lines[2].strip().startswith("sampled: success")
     stats = json.loads(report.read_text())
-    assert stats["episodes"] == 4 and 1 <= stats["mean_length"] <= 20
+    assert stats["seed"] == 12345 and stats["training_seed"] == 0 and set(stats["results"]) == {"deterministic", "sampled"}
+    for mode, result in stats["results"].items():
+        assert result["mode"] == mode and result["episodes"] == 4 and 1 <= result["mean_length"] <= 20
+        lo, hi = result["success_ci95"]
+        assert 0 <= lo <= result["success_rate"] <= hi <= 1
+        assert sum(result["end_causes"].values()) == 4 and len(result["episode_log"]) == 4
+        assert all(e["end_cause"] in result["end_causes"] and e["scene"].startswith("gen:empty?seed=")
+                   for e in result["episode_log"])
+        assert result["scenes"] == sorted({e["scene"] for e in result["episode_log"]})
+    first = stats["results"]["deterministic"]
     frames = imageio.mimread(gif)
     # One frame per step of agent 0's first episode (the settings of the run: 20-step episodes).
-    assert len(frames) == stats["video_frames"] == stats["video_episode_length"]
+    assert len(frames) == first["video_frames"] == first["video_episode_length"]
     assert 1 <= len(frames) <= 20 and frames[0].shape[:2] == (192, 192)
+    assert Image.open(gif).info["duration"] == 30  # the env's 0.03 s step
+
+
+@pytest.mark.parametrize("task", ["racing", "tracking"])
+def test_tiny_training_of_the_other_state_tasks(task: str, tmp_path: Path) -> None:
+    out = tmp_path / task
+    extra = ["--set", "cameras=[]"] if task == "tracking" else []
+    proc = run_cli("train", task, "--timesteps", "256", "--checkpoint-every", "0", "--out", str(out), *TINY, *extra)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "final.zip").is_file() and "done: 256 steps" in proc.stdout
+
+
+def test_eval_refuses_the_training_seed(trained_run: Path) -> None:
+    proc = run_cli("eval", "hover", "--checkpoint", str(trained_run / "final.zip"), "--seed", "0")
+    assert proc.returncode == 2 and "--seed 0 is the training run's seed" in proc.stderr
+
+
+def test_scene_path_outside_the_roots_names_scene_root(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from visfly_dist.cli import main
+
+    scene = tmp_path / "mine" / "room.obj"
+    scene.parent.mkdir()
+    scene.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    other = tmp_path / "other"
+    other.mkdir()
+    args = ["train", "hover", "--set", f"scenes=[\"{scene}\"]", "--out", str(tmp_path / "x")]
+    assert main([*args, "--scene-root", str(other)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is outside the scene roots" in err[0] and "--scene-root" in err[0]
+    assert main([*args, "--scene-root", str(tmp_path / "nowhere")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
 
 
 def test_bad_task_exits_2_with_one_line(tmp_path: Path) -> None:
     proc = run_cli("train", "hovr", "--out", str(tmp_path / "x"))
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["visfly-dist train: error: unknown task 'hovr'; valid tasks: "
-                                                "navigation, hover, landing, gap_crossing, racing"]
+                                                "navigation, hover, landing, gap_crossing, racing, tracking"]
     assert not (tmp_path / "x").exists()
 
 

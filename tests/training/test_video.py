@@ -10,7 +10,7 @@ import torch
 from visfly_dist.dynamics.rotations import rotate
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.scenes import resolve_source
-from visfly_dist.training.video import ChaseCamera, chase_pose, observation_panel
+from visfly_dist.training.video import ChaseCamera, chase_pose, gif_duration_ms, observation_panel
 
 
 def optical_axis(pose: np.ndarray) -> np.ndarray:
@@ -55,3 +55,9 @@ def test_depth_panel_is_bright_near_and_scaled_up() -> None:
     panel = observation_panel(np.array([[[0.0, 10.0], [20.0, 30.0]]], np.float32), spec, size=4)
     assert panel.shape == (4, 4, 3)
     assert panel[0, 0, 0] == 255 and panel[0, 3, 0] == 127 and panel[3, 0, 0] == 0 and panel[3, 3, 0] == 0
+
+
+def test_gif_frames_last_one_env_step_in_whole_centiseconds() -> None:
+    assert gif_duration_ms(1 / 0.03) == 30  # 1000 / 33.33... is 29.99..., which GIF would truncate to 20
+    assert gif_duration_ms(1 / 0.05) == 50
+    assert gif_duration_ms(200) == 20  # browsers play shorter delays at 100 ms

@@ -1,4 +1,7 @@
-"""Tasks: navigation, hover, landing, gap crossing (multi-agent), racing; ``make_env`` builds them by name."""
+"""Tasks: navigation, hover, landing, gap crossing (multi-agent), racing, tracking; ``make_env`` builds them by name.
+
+``outcomes.end_cause`` names why an episode ended. ``docs/TASKS.md`` compares every task with VisFly's.
+"""
 
 from visfly_dist.tasks.registry import TASKS, make_env, task_class
 

@@ -76,3 +76,35 @@ def vec3_problem(name: str, value: Any, positive: bool = False) -> list[str]:
     if len(v) != 3 or not all(math.isfinite(x) for x in v) or (positive and min(v) < 0):
         return [f"{name}={value!r} must be 3 finite numbers" + (" >= 0" if positive else "")]
     return []
+
+
+REWARDS = ("ours", "visfly")
+"""Reward variants a task offers: ``ours`` (the default) and ``visfly`` (the original's, term by term)."""
+
+
+def reward_problem(value: Any) -> list[str]:
+    """A problem message when ``value`` is not one of :data:`REWARDS`."""
+    return [] if value in REWARDS else [f"reward={value!r} must be one of {list(REWARDS)}"]
+
+
+def approach_speed(pos: torch.Tensor, vel: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` velocity component toward ``target``, m/s (positive when closing in); differentiable."""
+    delta = target - pos
+    return (vel * delta).sum(dim=1) / (delta.norm(dim=1) + 1e-6)
+
+
+def angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` angle between the rows of ``a`` and ``b``, radians in ``[0, pi]``."""
+    cos = (a * b).sum(dim=1) / (a.norm(dim=1) * b.norm(dim=1) + 1e-6)
+    return cos.clamp(-1.0, 1.0).acos()
+
+
+def attitude_error(quat: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` ``|q - (1, 0, 0, 0)|``: VisFly's (tiny-weighted) attitude penalty term."""
+    level = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quat.dtype, device=quat.device)
+    return (quat - level).norm(dim=1)
+
+
+def held_steps(held: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` consecutive steps inside a region, counting this one: ``held + 1`` where ``inside``, else 0."""
+    return torch.where(inside, held + 1, torch.zeros_like(held))

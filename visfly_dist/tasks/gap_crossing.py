@@ -136,8 +136,10 @@ class GapCrossingEnv(MultiDroneEnvBase):
         s, cfg = self.state, self.config
         distance = self.target_distance()
         progress = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
-        self._prev_distance = distance.detach()
         proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
         crowding = (1.0 - self.teammate_distance()).clamp(min=0.0)
         reward = 0.05 * progress - 0.01 * proximity - 0.05 * approach - 0.1 * crowding - 0.002 * s.omega.norm(dim=1)
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
+
+    def update_task_state(self) -> None:
+        self._prev_distance = self.target_distance().detach()

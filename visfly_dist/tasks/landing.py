@@ -12,9 +12,12 @@ fraction of the image they cover; all three are 0 when no pad pixel is seen.
 
 Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
 
-Reward per step (``p`` the point 0.1 m above the pad centre): ``0.05 *`` approach speed to ``p``
-(m/s), ``-0.01 * |omega|``, ``+0.01`` while the pad is in view, ``+success_bonus`` (10) on success,
-``-fail_penalty`` (5) on failure.
+Reward per step, ``reward="ours"`` (default; ``p`` the point 0.1 m above the pad centre): ``0.05 *``
+approach speed to ``p`` (m/s, finite difference), ``-0.01 * |omega|``, ``+0.01`` while the pad is
+in view, ``+success_bonus`` (10) on success, ``-fail_penalty`` (5) on failure.
+``reward="visfly"`` (VisFly's LandingEnv; ``c = (u, v) / 2`` the pad centre in VisFly's image units,
+``T`` = ``max_episode_steps``, ``k`` the step): ``0.2 * min(1.25 - |c|, 1) - 0.2 * |(q_w, q_x)| +
+0.2 * clamp(3 - z, 0, 3) / 3 - 0.02 |v| - 0.01 |omega| + 2 * success * (10 + T - k) / (1 + 2 |v|)``.
 
 Termination: success when ``z <= 0.2 m``, within 0.3 m (horizontally) of the pad centre and
 ``|v| <= 0.3 m/s``; failure on collision (a hard or off-pad touch-down), out of bounds, or, with
@@ -35,7 +38,7 @@ from gymnasium import spaces
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase, Spawn
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.tasks.common import metadata_point, progress_speed, vec3_problem
+from visfly_dist.tasks.common import metadata_point, progress_speed, reward_problem, vec3_problem
 
 DOWNWARD = (math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0)
 """+90 deg pitch: the optical axis (body +x) turns to body -z, straight down when level."""
@@ -65,7 +68,8 @@ class LandingConfig(EnvConfig):
         spawn_half_width: spawn box half extents, m.
         pad_threshold: brightest channel below this is a pad pixel (0-255).
         fail_when_pad_lost: fail the episode when the pad leaves the view.
-        success_bonus, fail_penalty: terminal reward terms.
+        success_bonus, fail_penalty: terminal reward terms (``reward="ours"``).
+        reward: ``ours`` or ``visfly`` (the original's reward).
     """
 
     scenes: tuple[str, ...] = ("gen:landing-pad",)
@@ -77,9 +81,10 @@ class LandingConfig(EnvConfig):
     fail_when_pad_lost: bool = False
     success_bonus: float = 10.0
     fail_penalty: float = 5.0
+    reward: str = "ours"
 
     def problems(self) -> list[str]:
-        out = super().problems() + vec3_problem("pad_center", self.pad_center)
+        out = super().problems() + vec3_problem("pad_center", self.pad_center) + reward_problem(self.reward)
         out += vec3_problem("spawn_half_width", self.spawn_half_width, positive=True)
         if not isinstance(self.pad_threshold, (int, float)) or not 0 < self.pad_threshold <= 255:
             out.append(f"pad_threshold={self.pad_threshold!r} must be in (0, 255]")
@@ -146,10 +151,18 @@ class LandingEnv(DroneEnvBase):
         return failure
 
     def get_reward(self) -> torch.Tensor:
-        cfg = self.config
-        distance = self._aim_distance()
-        approach = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
-        self._prev_distance = distance.detach()
-        in_view = (self.pad_observation()[:, 2] > 0).float()
-        reward = 0.05 * approach - 0.01 * self.state.omega.norm(dim=1) + 0.01 * in_view
+        cfg, s = self.config, self.state
+        pad = self.pad_observation()
+        if cfg.reward == "visfly":
+            remaining = (cfg.max_episode_steps - self.episode_step).float()
+            speed = s.vel.norm(dim=1)
+            return (0.2 * (1.25 - 0.5 * pad[:, :2].norm(dim=1)).clamp(max=1.0) - 0.2 * s.quat[:, :2].norm(dim=1)
+                    + 0.2 * (3.0 - s.pos[:, 2]).clamp(0.0, 3.0) / 3.0 - 0.02 * speed - 0.01 * s.omega.norm(dim=1)
+                    + 2.0 * self.success.float() * (10.0 + remaining) / (1.0 + 2.0 * speed))
+        approach = progress_speed(self._prev_distance, self._aim_distance(), cfg.ctrl_dt)
+        in_view = (pad[:, 2] > 0).float()
+        reward = 0.05 * approach - 0.01 * s.omega.norm(dim=1) + 0.01 * in_view
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
+
+    def update_task_state(self) -> None:
+        self._prev_distance = self._aim_distance().detach()

@@ -8,18 +8,20 @@
 
 Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
 
-Reward per step (``d_g`` distance to the goal, ``d_o`` to the nearest obstacle):
+Reward per step (``d_g`` distance to the goal, ``d_o`` to the nearest obstacle, ``v_g`` velocity
+toward the goal, ``v_o`` toward the nearest obstacle, ``T`` = ``max_episode_steps``, ``k`` the step):
 
-| term       | value                                                             |
-|------------|-------------------------------------------------------------------|
-| progress   | ``0.05 * (d_g(t-1) - d_g(t)) / ctrl_dt`` (m/s toward the goal)    |
-| heading    | ``0.01 * cos`` of the angle between body +x and the goal direction |
-| speed      | ``-0.002 * |v|``                                                  |
-| spin       | ``-0.002 * |omega|``                                              |
-| proximity  | ``-0.01 / (d_o + 0.2)``                                          |
-| approach   | ``-0.05 *`` speed toward the nearest obstacle when ``d_o < 1 m``  |
-| success    | ``+success_bonus`` (10) on reaching the goal                      |
-| failure    | ``-fail_penalty`` (5) on failure                                  |
+| term       | ``reward="ours"`` (default)                                      | ``reward="visfly"`` (VisFly's NavigationEnv) |
+|------------|-------------------------------------------------------------------|-----------------------------------------------|
+| progress   | ``0.05 * (d_g(t-1) - d_g(t)) / ctrl_dt``                          | ``0.01 * min(v_g, 10)``                       |
+| heading    | ``+0.01 * cos`` of the angle between body +x and the goal direction | ``-0.01 * max(0, angle(v, body +x) - 10 deg)`` (rad) |
+| attitude   | -                                                                 | ``-1e-5 * |q - q_level|``                     |
+| speed      | ``-0.002 * |v|``                                                  | same                                          |
+| spin       | ``-0.002 * |omega|``                                              | same                                          |
+| proximity  | ``-0.01 / (d_o + 0.2)``                                          | same                                          |
+| approach   | ``-0.05 * v_o`` when ``d_o < 1 m``                                | ``-0.005 * max(0, 1 - d_o) * max(0, v_o)``    |
+| success    | ``+success_bonus`` (10)                                           | ``+0.1 * (T - k) * (0.2 + 0.8 / (1 + |v|))``  |
+| failure    | ``-fail_penalty`` (5)                                             | none                                          |
 
 Termination: success within ``success_radius`` (0.5 m) of the goal; failure on collision, inside
 an obstacle or leaving the scene's bounds. Truncation: 256 steps of 0.03 s. The goal is the scene
@@ -29,6 +31,7 @@ metadata's ``goal`` when it has one (generated garages do), else ``config.goal``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,7 +42,8 @@ from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase, Spawn
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import (
-    TARGET_DIM, forward_axis, metadata_point, obstacle_terms, progress_speed, target_observation, vec3_problem,
+    TARGET_DIM, angle_between, approach_speed, attitude_error, forward_axis, metadata_point, obstacle_terms,
+    progress_speed, reward_problem, target_observation, vec3_problem,
 )
 
 FORWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, offset=(0.2, 0.0, 0.0))
@@ -54,7 +58,8 @@ class NavigationConfig(EnvConfig):
         goal: goal when the scene's metadata has none, m.
         spawn_center, spawn_half_width: spawn box, m.
         success_radius: success within this distance of the goal, m.
-        success_bonus, fail_penalty: terminal reward terms.
+        success_bonus, fail_penalty: terminal reward terms (``reward="ours"``).
+        reward: ``ours`` or ``visfly`` (the original's reward, term by term).
     """
 
     scenes: tuple[str, ...] = ()
@@ -66,6 +71,7 @@ class NavigationConfig(EnvConfig):
     success_radius: float = 0.5
     success_bonus: float = 10.0
     fail_penalty: float = 5.0
+    reward: str = "ours"
 
     def __post_init__(self) -> None:
         if not self.scenes:
@@ -74,7 +80,7 @@ class NavigationConfig(EnvConfig):
 
     def problems(self) -> list[str]:
         out = super().problems() + vec3_problem("goal", self.goal) + vec3_problem("spawn_center", self.spawn_center)
-        out += vec3_problem("spawn_half_width", self.spawn_half_width, positive=True)
+        out += vec3_problem("spawn_half_width", self.spawn_half_width, positive=True) + reward_problem(self.reward)
         if not isinstance(self.density, (int, float)) or self.density < 0:
             out.append(f"density={self.density!r} must be a number >= 0")
         if not isinstance(self.success_radius, (int, float)) or not self.success_radius > 0:
@@ -122,11 +128,26 @@ class NavigationEnv(DroneEnvBase):
     def get_reward(self) -> torch.Tensor:
         s, cfg = self.state, self.config
         distance = self.goal_distance()
+        proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
+        common = -0.002 * s.vel.norm(dim=1) - 0.002 * s.omega.norm(dim=1) - 0.01 * proximity
+        if cfg.reward == "visfly":
+            return common + self._visfly_terms(approach)
         progress = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
-        self._prev_distance = distance.detach()
         to_goal = (self.goal - s.pos) / distance.clamp(min=1e-6)[:, None]
         heading = (forward_axis(s.quat) * to_goal).sum(dim=1)
-        proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
-        reward = (0.05 * progress + 0.01 * heading - 0.002 * s.vel.norm(dim=1) - 0.002 * s.omega.norm(dim=1)
-                  - 0.01 * proximity - 0.05 * approach)
+        reward = common + 0.05 * progress + 0.01 * heading - 0.05 * approach
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
+
+    def _visfly_terms(self, approach: torch.Tensor) -> torch.Tensor:
+        """VisFly's progress, heading, attitude, obstacle-ramp and success terms."""
+        s, cfg = self.state, self.config
+        d_o = (self.frame.nearest - s.pos).norm(dim=1)
+        progress = 0.01 * approach_speed(s.pos, s.vel, self.goal).clamp(max=10.0)
+        heading = -0.01 * (angle_between(s.vel, forward_axis(s.quat)) - math.pi / 18).clamp(min=0.0)
+        ramp = -0.005 * (1.0 - d_o).clamp(min=0.0) * approach
+        remaining = (cfg.max_episode_steps - self.episode_step).float()
+        bonus = self.success.float() * remaining * 0.1 * (0.2 + 0.8 / (1.0 + s.vel.norm(dim=1)))
+        return progress + heading - 1e-5 * attitude_error(s.quat) + ramp + bonus
+
+    def update_task_state(self) -> None:
+        self._prev_distance = self.goal_distance().detach()

@@ -14,6 +14,7 @@ TASKS: dict[str, str] = {
     "landing": "visfly_dist.tasks.landing:LandingEnv",
     "gap_crossing": "visfly_dist.tasks.gap_crossing:GapCrossingEnv",
     "racing": "visfly_dist.tasks.racing:RacingEnv",
+    "tracking": "visfly_dist.tasks.tracking:TrackingEnv",
 }
 """Task name -> ``module:EnvClass``."""
 

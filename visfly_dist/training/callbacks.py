@@ -3,8 +3,10 @@
 ``SuccessCallback`` reads finished episodes from the step infos (``info["episode"]`` from
 ``VecMonitor``, ``info["is_success"]`` from the task), keeps the last ``window`` of them, and at the
 end of every rollout logs ``charts/success_rate``, ``charts/mean_return``, ``charts/mean_length`` and
-``charts/steps_per_second``, appends a row to ``success_curve.csv`` and prints a progress line.
-At the end of training it draws ``success_curve.png``.
+``charts/steps_per_second`` and, per end cause (see :mod:`visfly_dist.tasks.outcomes`), the share
+of the window's episodes that ended so as ``ends/<cause>``; it appends a row to
+``success_curve.csv`` and prints a progress line (with the most common end causes). At the end of
+training it draws ``success_curve.png``.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+
+from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
 
 CURVE_FIELDS = ("timesteps", "success_rate", "mean_return", "mean_length", "episodes")
 
@@ -37,6 +41,7 @@ class SuccessCallback(BaseCallback):
         self.run_dir = Path(run_dir)
         self.total = total_timesteps
         self.episodes: deque[tuple[float, float, float]] = deque(maxlen=window)
+        self.causes: deque[str] = deque(maxlen=window)
         self.episodes_total = 0
         self.print_every_s = print_every_s
         self.csv_path = self.run_dir / "success_curve.csv"
@@ -55,8 +60,18 @@ class SuccessCallback(BaseCallback):
             if done and "episode" in info:
                 ep = info["episode"]
                 self.episodes.append((float(bool(info.get("is_success", False))), float(ep["r"]), float(ep["l"])))
+                self.causes.append(end_cause(info, int(ep["l"]), self._max_episode_steps()))
                 self.episodes_total += 1
         return True
+
+    def _max_episode_steps(self) -> int | None:
+        config = getattr(self.training_env.unwrapped, "config", None)
+        return getattr(config, "max_episode_steps", None)
+
+    def cause_shares(self) -> dict[str, float]:
+        """Share of the window's episodes per end cause (every cause, zeros included)."""
+        n = max(len(self.causes), 1)
+        return {c: sum(x == c for x in self.causes) / n for c in END_CAUSES}
 
     def summary(self) -> dict[str, float]:
         """Success rate, mean return and mean length over the window (NaN before any episode)."""
@@ -74,6 +89,9 @@ class SuccessCallback(BaseCallback):
         s = self.summary()
         for key, value in s.items():
             self.logger.record(f"charts/{key}", value)
+        shares = self.cause_shares()
+        for cause, share in shares.items():
+            self.logger.record(f"ends/{cause}", share)
         with self.csv_path.open("a", newline="") as f:
             csv.writer(f).writerow(
                 (self.num_timesteps, f"{s['success_rate']:.4f}", f"{s['mean_return']:.4f}", f"{s['mean_length']:.1f}", self.episodes_total)
@@ -82,10 +100,12 @@ class SuccessCallback(BaseCallback):
         if self.verbose and now - self._last_print >= self.print_every_s:
             self._last_print = now
             eta = (self.total - self.num_timesteps) / max(sps, 1e-9)
+            top = sorted(((v, c) for c, v in shares.items() if v > 0), reverse=True)[:2]
+            ends = ", ".join(f"{c} {v:.2f}" for v, c in top)
             print(
                 f"[{self.num_timesteps:>9,}/{self.total:,}] {sps:6.0f} steps/s  "
                 f"success {s['success_rate']:.2f}  return {s['mean_return']:8.2f}  "
-                f"length {s['mean_length']:6.1f}  episodes {self.episodes_total}  eta {eta / 60:5.1f} min",
+                f"length {s['mean_length']:6.1f}  episodes {self.episodes_total}  eta {eta / 60:5.1f} min  ends: {ends}",
                 flush=True,
                 file=sys.stdout,
             )

@@ -19,14 +19,16 @@ BACKBONES = ("visfly-cnn", "resnet-tiny")
 ALGOS = ("ppo", "bptt", "shac")
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
-    # Budgets for about 10-15 minutes on a shared 2-core CPU host: navigation measured at about
-    # 170 env steps/s with PPO updates included (16 envs, 64x64 depth); the state-only tasks (hover,
-    # racing) step about 5x faster; landing and gap crossing render images like navigation.
+    # Budgets for about 5-25 minutes on a shared 2-core CPU host (docs/RESULTS.md has what each
+    # reached): navigation measured at about 170 env steps/s with PPO updates included (16 envs,
+    # 64x64 depth); hover about 450 (100k steps: 0.99 deterministic success), racing about 200;
+    # landing, gap crossing and tracking render images like navigation.
     "navigation": dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512),
     "hover": dict(num_envs=16, timesteps=100_000, n_steps=128, batch_size=512),
     "landing": dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512),
     "gap_crossing": dict(num_envs=15, timesteps=150_000, n_steps=128, batch_size=480),
     "racing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512),
+    "tracking": dict(num_envs=16, timesteps=200_000, n_steps=128, batch_size=512),
 }
 """Task-dependent defaults; tasks not listed here use ``FALLBACK_DEFAULTS``."""
 
@@ -85,6 +87,8 @@ class TrainConfig:
         overlap: collect the next rollout while PPO updates on the last one (policy lag of one
             update, see :mod:`visfly_dist.training.overlap`). Off by default: on hover (20k steps,
             short rollouts) the lag cost most of what PPO learned; measure it on your task.
+        scene_roots: folders scene files may be loaded from (``--scene-root``); ``scenes`` paths
+            must lie under one of them.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
         algo: ``ppo``, or ``bptt`` / ``shac`` (differentiable, through the dynamics; they use
             ``lr``, ``gamma``, ``horizon``, and SHAC's critic ``gae_lambda``, ``n_epochs``, ``batch_size``).
@@ -116,6 +120,7 @@ class TrainConfig:
     normalize: bool = True
     progress: bool = True
     overlap: bool = False
+    scene_roots: tuple[str, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
     algo: str = "ppo"
     horizon: int = 32
@@ -124,7 +129,8 @@ class TrainConfig:
         """A copy with task defaults filled in and ``out`` set."""
         defaults = TASK_DEFAULTS.get(self.task, FALLBACK_DEFAULTS)
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
-        cfg = replace(self, connect=tuple(self.connect), overrides=dict(self.overrides), **filled)
+        cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
+                      overrides=dict(self.overrides), **filled)
         if cfg.out is None:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg
@@ -160,6 +166,21 @@ class TrainConfig:
             out.append(f"horizon={self.horizon!r} must be an int >= 1")
         if self.backbone not in BACKBONES:
             out.append(f"backbone={self.backbone!r} must be one of {BACKBONES}")
+        return out + self._scene_problems()
+
+    def _scene_problems(self) -> list[str]:
+        """Missing ``--scene-root`` folders, and scene paths outside every root."""
+        from visfly_dist.aggregator.dataset import expand_sources
+
+        out = [f"--scene-root {r!r} is not a folder" for r in self.scene_roots if not Path(r).is_dir()]
+        scenes = self.overrides.get("scenes", ())
+        scenes = (scenes,) if isinstance(scenes, str) else tuple(scenes)
+        paths = tuple(str(s) for s in scenes if not str(s).startswith("gen:"))
+        if paths and not out:
+            try:
+                expand_sources(paths, tuple(self.scene_roots))
+            except ConfigError as exc:
+                out.append(f"{exc} (roots come from --scene-root DIR; e.g. --scene-root . for scenes in this folder)")
         return out
 
     def validate(self) -> "TrainConfig":
@@ -172,6 +193,7 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["connect"] = list(self.connect)
+        d["scene_roots"] = list(self.scene_roots)
         return d
 
     @classmethod
@@ -180,4 +202,4 @@ class TrainConfig:
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise ConfigError(f"training config has unknown keys {sorted(unknown)}; accepted: {sorted(cls.__dataclass_fields__)}")
-        return cls(**{**d, "connect": tuple(d.get("connect", ()))})
+        return cls(**{**d, "connect": tuple(d.get("connect", ())), "scene_roots": tuple(d.get("scene_roots", ()))})

@@ -1,14 +1,24 @@
-"""``visfly-dist eval TASK --checkpoint PATH``: success rate, returns, collisions, and a video.
+"""``visfly-dist eval TASK --checkpoint PATH``: deterministic and sampled success side by side.
 
 Example::
 
-    visfly-dist eval navigation --checkpoint runs/navigation-20261121-2020/final.zip --episodes 50 \\
-        --video nav.gif --deterministic
+    visfly-dist eval hover --checkpoint runs/hover-1/final.zip --episodes 100 --video hover.gif --json hover.json
 
 The env is built with the settings of the training run (its ``config.json`` next to the checkpoint
-or one folder up), then ``--set`` changes; the observation normalisation saved with the checkpoint
-(``*.norm.npz``) is applied. ``--video`` films agent 0's first episode: its camera image beside a
-chase camera (see :mod:`visfly_dist.training.video`). ``--json`` writes the figures as JSON.
+or one folder up), then ``--seed``, ``--scene-root`` and ``--set`` changes; the observation
+normalisation saved with the checkpoint (``*.norm.npz``) is applied. Both modes (``--mode both``,
+the default) run from the same seed, so they start from the same spawns: ``deterministic`` takes
+the policy's mean action, ``sampled`` draws actions as in training. Each line gives the success
+rate with its Wilson 95 % interval and how the episodes ended. The default seed (12345) differs
+from training's, so generated scenes (seeded from the env seed) and spawns are ones training never
+saw; an equal seed is refused unless ``--allow-training-seed``. Scene files are not drawn from the
+seed: hold some out of training and pass them with ``--scene-root DIR --set scenes='["held_out/*.glb"]'``.
+
+``--video`` films agent 0 in the first mode: its first episode, or with ``--video-success`` its
+first successful one (its camera image beside a chase camera, at the env's rate; see
+:mod:`visfly_dist.training.video`). ``--json`` writes, per mode, the figures, the seed, the scene
+sources and every episode's end cause (``success``, ``collision``, ``out_of_bounds``, ``lost``,
+``failure``, ``time_limit``, ``swapped``; see :mod:`visfly_dist.tasks.outcomes`).
 """
 
 from __future__ import annotations
@@ -19,25 +29,29 @@ from pathlib import Path
 
 from visfly_dist.protocol.session import add_zenoh_config_argument
 from visfly_dist.training.config import parse_override
-from visfly_dist.training.train_cli import with_zenoh_config
+from visfly_dist.training.train_cli import add_scene_root, scene_roots, with_zenoh_config
+
+MODES = {"both": (True, False), "deterministic": (True,), "sampled": (False,)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing")
+    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking")
     parser.add_argument("--checkpoint", required=True, help="model .zip written by 'visfly-dist train'")
-    parser.add_argument("--episodes", type=int, default=20, help="episodes to evaluate (default 20)")
+    parser.add_argument("--episodes", type=int, default=100, help="episodes per mode (default 100)")
+    parser.add_argument("--mode", choices=tuple(MODES), default="both",
+                        help="deterministic (mean action), sampled (as in training), or both side by side (default)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: the training run's)")
-    parser.add_argument("--deterministic", action="store_true",
-                        help="take the policy's mean action (default: sample, as in training; briefly trained "
-                             "policies often do much worse on their mean action)")
-    parser.add_argument("--video", metavar="FILE.gif", help="film agent 0's first episode")
-    parser.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    parser.add_argument("--video", metavar="FILE.gif", help="film agent 0 in the first mode")
+    parser.add_argument("--video-success", action="store_true", help="film agent 0's first successful episode")
+    parser.add_argument("--json", metavar="FILE", help="write the figures, seed, scenes and every episode as JSON")
     parser.add_argument("--seed", type=int, default=12345, help="env seed (default 12345, unlike training's)")
+    parser.add_argument("--allow-training-seed", action="store_true", help="evaluate with the training run's own seed")
     parser.add_argument("--workers", type=int, help="local scene workers to spawn")
     parser.add_argument("--connect", action="append", default=[], metavar="EP", help="Zenoh endpoint to join (repeatable)")
     parser.add_argument("--run-id", help="key namespace (default: random)")
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), help="renderer of local workers")
     parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
+    add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
@@ -53,26 +67,36 @@ def run(args: argparse.Namespace) -> int:
     checkpoint = Path(args.checkpoint)
     if not checkpoint.is_file():
         raise ConfigError(f"--checkpoint {str(checkpoint)!r} does not exist; pass a .zip written by 'visfly-dist train'")
+    run_cfg = find_run_config(checkpoint)
+    train_seed = run_cfg.seed if run_cfg is not None else None
+    if train_seed == args.seed and not args.allow_training_seed:
+        raise ConfigError(f"--seed {args.seed} is the training run's seed: its scenes and spawns were seen in training; "
+                          "pick another seed (or pass --allow-training-seed)")
     overrides = with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config)
-    pool = dict(workers=args.workers, connect=tuple(args.connect) or None, run_id=args.run_id, backend=args.backend)
-    env = build_eval_env(args.task, args.num_envs, args.seed, find_run_config(checkpoint), overrides, pool)
-    recorder = None
+    pool = dict(workers=args.workers, connect=tuple(args.connect) or None, run_id=args.run_id, backend=args.backend,
+                scene_roots=scene_roots(args) or None)
+    env = build_eval_env(args.task, args.num_envs, args.seed, run_cfg, overrides, pool)
+    recorder, results = None, []
     try:
         model, env = load_policy(checkpoint, env, args.device)
         recorder = VideoRecorder(env.unwrapped) if args.video else None
-        stats = evaluate(model, env, args.episodes, deterministic=args.deterministic, recorder=recorder)
+        for k, deterministic in enumerate(MODES[args.mode]):
+            results.append(evaluate(model, env, args.episodes, deterministic=deterministic, seed=args.seed,
+                                    recorder=recorder if k == 0 else None, film_success=args.video_success))
         if recorder is not None:
             recorder.save(args.video)
     finally:
         if recorder is not None:
             recorder.close()
         env.close()
-    print(
-        f"{args.task}: {stats.episodes} episodes  success rate {stats.success_rate:.2f}  "
-        f"mean return {stats.mean_return:.2f}  mean length {stats.mean_length:.1f}  "
-        f"collisions {stats.collisions}  out of bounds {stats.out_of_bounds}"
-        + (f"  video {args.video} ({stats.video_frames} frames)" if args.video else "")
-    )
+    print(f"{args.task}: {args.checkpoint}, seed {args.seed} (training seed {train_seed})")
+    for stats in results:
+        print(stats.line())
+    if recorder is not None:
+        first = results[0]
+        print(f"video {args.video}: {first.video_frames} frames, {'a success' if first.video_success else 'no success'}")
     if args.json:
-        Path(args.json).write_text(json.dumps(stats.to_dict(), indent=2) + "\n")
+        report = dict(task=args.task, checkpoint=str(checkpoint), seed=args.seed, training_seed=train_seed,
+                      episodes_per_mode=args.episodes, results={s.mode: s.to_dict() for s in results})
+        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
     return 0

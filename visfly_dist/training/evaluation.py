@@ -1,15 +1,18 @@
-"""Evaluating a trained policy: success rate, returns, lengths, collisions, and a video.
+"""Evaluating a trained policy: success with a confidence interval, end causes, returns, and a video.
 
 Episodes are counted per agent up to a quota of ``ceil(episodes / num_envs)`` each, so that short
 (often failed) episodes do not crowd out long ones; the first ``episodes`` counted are reported.
 Returns are the env's raw rewards (``info["episode"]`` of ``VecMonitor``), never the normalised ones.
+Each episode's end cause comes from :func:`visfly_dist.tasks.outcomes.end_cause`; the scene it
+flew in is the concrete source of its scene slot (a seeded ``gen:`` spec or a root-relative path).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from collections import Counter
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,40 +20,89 @@ import numpy as np
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
-from visfly_dist.tasks import make_env
 from visfly_dist.errors import ConfigError
+from visfly_dist.tasks import make_env
+from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
 from visfly_dist.training.checkpoints import load_normalization, norm_path
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.ppo import env_kwargs
 from visfly_dist.training.video import VideoRecorder
 
 
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a success rate (95 % with the default ``z``); ``(0, 1)`` when ``n == 0``."""
+    if n <= 0:
+        return 0.0, 1.0
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@dataclass
+class Episode:
+    """One evaluated episode: agent index, scene source, outcome, return and length."""
+
+    agent: int
+    scene: str
+    success: bool
+    end_cause: str
+    episode_return: float
+    length: int
+
+
 @dataclass
 class EvalStats:
-    """Outcome of an evaluation.
+    """Outcome of an evaluation in one mode.
 
     Attributes:
+        mode: ``deterministic`` (mean action) or ``sampled`` (actions drawn from the policy).
+        seed: the env seed of the evaluation.
         episodes: episodes counted.
         success_rate: share of episodes ending in success.
+        success_ci95: Wilson 95 % interval of the success rate.
         mean_return: mean undiscounted return.
         mean_length: mean episode length, steps.
-        collisions: episodes that ended in a collision.
-        out_of_bounds: episodes that ended by leaving the flight box.
+        end_causes: episodes per end cause (every cause of ``END_CAUSES``, zeros included).
+        scenes: the distinct scene sources the episodes flew in.
         video_frames: frames written to the video (0 without one).
         video_episode_length: length of the filmed episode, steps (0 without a video).
+        video_success: whether the filmed episode succeeded.
+        episode_log: every episode.
     """
 
+    mode: str
+    seed: int
     episodes: int
     success_rate: float
+    success_ci95: tuple[float, float]
     mean_return: float
     mean_length: float
-    collisions: int
-    out_of_bounds: int
+    end_causes: dict[str, int]
+    scenes: list[str]
     video_frames: int = 0
     video_episode_length: int = 0
+    video_success: bool = False
+    episode_log: list[Episode] = field(default_factory=list)
+
+    @property
+    def collisions(self) -> int:
+        return self.end_causes["collision"]
+
+    @property
+    def out_of_bounds(self) -> int:
+        return self.end_causes["out_of_bounds"]
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def line(self) -> str:
+        """One summary line: success with its interval, causes, return and length."""
+        lo, hi = self.success_ci95
+        causes = "  ".join(f"{k} {v}" for k, v in self.end_causes.items() if v)
+        return (f"{self.mode:>13}: success {self.success_rate:.2f} [{lo:.2f}, {hi:.2f}] over {self.episodes}  "
+                f"return {self.mean_return:8.2f}  length {self.mean_length:6.1f}  ends: {causes}")
 
 
 def find_run_config(checkpoint: Path) -> TrainConfig | None:
@@ -76,60 +128,85 @@ def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[PPO
     return model, env
 
 
-def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
-             recorder: VideoRecorder | None = None) -> EvalStats:
-    """Run ``model`` on ``env`` until ``episodes`` episodes are counted.
+def _slot_sources(base: Any) -> list[str]:
+    return [base.aggregator.slot_source(s) for s in range(base.aggregator.num_scenes)]
+
+
+def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True, seed: int = 0,
+             recorder: VideoRecorder | None = None, film_success: bool = False) -> EvalStats:
+    """Run ``model`` on ``env`` (reseeded with ``seed``) until ``episodes`` episodes are counted.
 
     Args:
         model: the policy.
         env: the (possibly normalising) VecEnv the model was loaded with.
         episodes: episodes to count (>= 1).
         deterministic: take the mean action instead of sampling.
-        recorder: when given, films agent ``recorder.agent`` during its first episode: one frame per
-            observation it acts on, so the video has as many frames as that episode has steps.
+        seed: env seed (spawns, noise); the same seed gives both modes the same starts.
+        recorder: when given, films agent ``recorder.agent``: one frame per observation it acts on,
+            so the video has as many frames as the filmed episode has steps.
+        film_success: film agent ``recorder.agent``'s episodes until one succeeds (the last whole
+            one is kept when none does before the evaluation ends); otherwise its first episode.
     """
     if episodes < 1:
         raise ConfigError(f"episodes={episodes!r} must be >= 1")
-    n = env.num_envs
+    base = env.unwrapped
+    n, limit = env.num_envs, int(base.config.max_episode_steps)
     quota = math.ceil(episodes / n)
     counted = np.zeros(n, dtype=np.int64)
-    results: list[tuple[bool, float, int, bool, bool]] = []
-    filming = recorder is not None
+    log: list[Episode] = []
+    filming, filmed_length, filmed_success = recorder is not None, 0, False
+    last_failure: list[np.ndarray] = []
+    env.seed(seed)
     obs = env.reset()
-    step, ret, filmed_length = 0, 0.0, 0
-    while len(results) < episodes:
+    step, ret = 0, 0.0
+    while len(log) < episodes:
         if filming:
             recorder.add(obs, f"step {step}  return {ret:.2f}")
+        sources = _slot_sources(base)
+        agent_scene = np.asarray(base.agent_scene.cpu())
         actions, _ = model.predict(obs, deterministic=deterministic)
         obs, rewards, dones, infos = env.step(actions)
         if filming:
             raw = env.get_original_reward() if isinstance(env, VecNormalize) else rewards
             step, ret = step + 1, ret + float(raw[recorder.agent])
         for i in np.flatnonzero(dones):
-            info = infos[i]
+            info, ep = infos[i], infos[i]["episode"]
             if filming and i == recorder.agent:
-                filming, filmed_length = False, int(info["episode"]["l"])
-            if counted[i] < quota and len(results) < episodes:
+                filmed_length, filmed_success = int(ep["l"]), bool(info.get("is_success"))
+                if filmed_success or not film_success:
+                    filming = False
+                else:
+                    last_failure, recorder.frames = recorder.frames, []
+                    step, ret = 0, 0.0
+            if counted[i] < quota and len(log) < episodes:
                 counted[i] += 1
-                ep = info["episode"]
-                results.append((bool(info.get("is_success")), float(ep["r"]), int(ep["l"]),
-                                bool(info.get("collision")), bool(info.get("out_of_bounds"))))
-    arr = np.asarray(results, dtype=np.float64)
+                log.append(Episode(agent=int(i), scene=sources[int(agent_scene[i])], success=bool(info.get("is_success")),
+                                   end_cause=end_cause(info, int(ep["l"]), limit),
+                                   episode_return=float(ep["r"]), length=int(ep["l"])))
+    if filming and film_success and last_failure:
+        recorder.frames = last_failure  # no success filmed: keep the last whole episode
+    wins = sum(e.success for e in log)
+    causes = Counter(e.end_cause for e in log)
     return EvalStats(
-        episodes=len(results),
-        success_rate=float(arr[:, 0].mean()),
-        mean_return=float(arr[:, 1].mean()),
-        mean_length=float(arr[:, 2].mean()),
-        collisions=int(arr[:, 3].sum()),
-        out_of_bounds=int(arr[:, 4].sum()),
+        mode="deterministic" if deterministic else "sampled",
+        seed=seed,
+        episodes=len(log),
+        success_rate=wins / len(log),
+        success_ci95=wilson_interval(wins, len(log)),
+        mean_return=float(np.mean([e.episode_return for e in log])),
+        mean_length=float(np.mean([e.length for e in log])),
+        end_causes={c: causes.get(c, 0) for c in END_CAUSES},
+        scenes=sorted({e.scene for e in log}),
         video_frames=len(recorder.frames) if recorder is not None else 0,
         video_episode_length=filmed_length,
+        video_success=filmed_success,
+        episode_log=log,
     )
 
 
-def build_eval_env(task: str, num_envs: int | None, seed: int, run_cfg: TrainConfig | None,
-                   overrides: dict[str, Any], pool: dict[str, Any]) -> VecEnv:
-    """``make_env`` with the training run's settings (when known), then the given changes."""
+def eval_config(task: str, seed: int, run_cfg: TrainConfig | None, overrides: dict[str, Any],
+                pool: dict[str, Any]) -> TrainConfig:
+    """The training run's settings (when known) with the evaluation's seed and changes."""
     cfg = run_cfg if run_cfg is not None and run_cfg.task == task else TrainConfig(task=task)
     cfg = cfg.resolved()
     cfg.seed = seed
@@ -137,4 +214,11 @@ def build_eval_env(task: str, num_envs: int | None, seed: int, run_cfg: TrainCon
     for key, value in pool.items():
         if value is not None:
             setattr(cfg, key, value)
+    return cfg.validate()
+
+
+def build_eval_env(task: str, num_envs: int | None, seed: int, run_cfg: TrainConfig | None,
+                   overrides: dict[str, Any], pool: dict[str, Any]) -> VecEnv:
+    """``make_env`` with the training run's settings (when known), then the given changes."""
+    cfg = eval_config(task, seed, run_cfg, overrides, pool)
     return VecMonitor(make_env(task, num_envs=num_envs or cfg.num_envs, **env_kwargs(cfg)))

@@ -67,7 +67,8 @@ def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     pool_changes = overrides.pop("pool", {}) or {}
     if not isinstance(pool_changes, dict):
         raise ConfigError(f"--set pool={pool_changes!r} must be a JSON map of PoolConfig fields, e.g. pool={{\"lease_ms\":5000}}")
-    flags = {"num_local_workers": cfg.workers, "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id, "backend": cfg.backend}
+    flags = {"num_local_workers": cfg.workers, "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id,
+             "backend": cfg.backend, "scene_roots": tuple(cfg.scene_roots) or None}
     pool_changes.update({k: v for k, v in flags.items() if v is not None})
     kwargs: dict[str, Any] = {"seed": cfg.seed, **overrides}
     if isinstance(kwargs.get("cameras"), list):

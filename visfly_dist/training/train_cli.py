@@ -6,6 +6,7 @@ Example::
     visfly-dist train hover --timesteps 50000 --num-envs 8 --set max_episode_steps=128
     visfly-dist train navigation --connect tcp/10.0.0.5:7447 --run-id exp1 --workers 0
     visfly-dist train hover --algo bptt --horizon 32 --lr 1e-3   # through the dynamics (or shac)
+    visfly-dist train navigation --scene-root scenes --set scenes='["my_garage/*.glb"]'
 
 Defaults depend on the task (``visfly_dist.training.config.TASK_DEFAULTS``); the resolved config is
 printed at the start and saved in the run folder. See :mod:`visfly_dist.training.ppo` (and
@@ -16,6 +17,7 @@ for training with your own algorithm.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
 from visfly_dist.training.config import ALGOS, BACKBONES, TrainConfig, parse_override
@@ -33,7 +35,7 @@ def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing")
+    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking")
     parser.add_argument("--timesteps", type=int, help="total env steps (default: per task)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: per task)")
     parser.add_argument("--workers", type=int, help="local scene workers to spawn (default: the env's)")
@@ -60,11 +62,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="collect the next rollout while PPO updates (workers and learner busy at once; "
                              "policy lag of one update, which can cost sample efficiency)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
     parser.add_argument("--algo", choices=ALGOS, default="ppo", help="ppo (default), or bptt / shac through the dynamics")
     parser.add_argument("--horizon", type=int, default=32, help="bptt/shac window, steps (default 32)")
     parser.set_defaults(func=run)
+
+
+def add_scene_root(parser: argparse.ArgumentParser) -> None:
+    """``--scene-root DIR`` (repeatable): folders that scene paths in ``--set scenes=...`` are read from."""
+    parser.add_argument("--scene-root", action="append", default=[], metavar="DIR",
+                        help="folder scene files may be loaded from; scene paths are relative to it (repeatable)")
+
+
+def scene_roots(args: argparse.Namespace) -> tuple[str, ...]:
+    """The ``--scene-root`` folders as absolute paths (a run's config stays valid from any folder)."""
+    return tuple(str(Path(r).resolve()) for r in args.scene_root)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
@@ -93,6 +107,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         normalize=not args.no_normalize,
         overlap=args.overlap,
         progress=not args.quiet,
+        scene_roots=scene_roots(args),
         overrides=with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config),
         algo=args.algo,
         horizon=args.horizon,

@@ -116,6 +116,18 @@ def label(panel: np.ndarray, text: str) -> np.ndarray:
     return np.asarray(img)
 
 
+def gif_duration_ms(fps: float) -> int:
+    """Frame duration for imageio's GIF writer, which takes milliseconds.
+
+    GIF stores whole centiseconds and Pillow truncates, so ``1000 / fps`` is rounded to the nearest
+    10 ms (``1000 / (1 / 0.03)`` is 29.999... and would become 20 ms); at least 20 ms, because
+    browsers play shorter delays at 100 ms.
+    """
+    if not fps > 0:
+        raise ValueError(f"fps={fps!r} must be > 0")
+    return max(20, 10 * round(100.0 / fps))
+
+
 class VideoRecorder:
     """Collects frames of one agent of a :class:`~visfly_dist.client.env_base.DroneEnvBase`.
 
@@ -153,13 +165,22 @@ class VideoRecorder:
             panels.insert(0, label(observation_panel(obs[self.camera.name][self.agent], self.camera), self.camera.name))
         self.frames.append(np.concatenate(panels, axis=1))
 
-    def save(self, path: str | Path, fps: int = 20) -> Path:
-        """Write the frames as a GIF (or any format imageio knows by the suffix)."""
+    def save(self, path: str | Path, fps: float | None = None) -> Path:
+        """Write the frames as a GIF (or any format imageio knows by the suffix).
+
+        Args:
+            path: output file.
+            fps: frames per second; default: the env's control rate (``1 / ctrl_dt``), so the video
+                plays in real time.
+        """
         import imageio.v2 as imageio
 
+        if not self.frames:
+            raise ValueError("no frames to save: call add() once per observation before save()")
+        fps = 1.0 / float(self.env.config.ctrl_dt) if fps is None else float(fps)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        imageio.mimsave(path, self.frames, duration=1.0 / fps, loop=0)
+        imageio.mimsave(path, self.frames, duration=gif_duration_ms(fps), loop=0)
         return path
 
     def close(self) -> None:

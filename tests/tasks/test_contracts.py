@@ -1,0 +1,158 @@
+"""Contracts every task keeps: pure hooks, success radius held to the end, end causes, reward signs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from visfly_dist import make_env
+from visfly_dist.tasks import TASKS
+from visfly_dist.tasks.outcomes import end_cause
+from tests.tasks.helpers import hover, place, small
+
+HOOKS = ("get_success", "get_failure", "get_reward", "get_observation")
+
+
+def task_state(env) -> dict[str, torch.Tensor]:
+    """Every tensor attribute of the env (its per-agent task state among them), cloned."""
+    return {k: v.detach().clone() for k, v in vars(env).items() if isinstance(v, torch.Tensor)}
+
+
+def as_tensors(value) -> list[torch.Tensor]:
+    return [value[k] for k in sorted(value)] if isinstance(value, dict) else [value]
+
+
+@pytest.mark.parametrize("name", list(TASKS))
+def test_hooks_are_pure(envs, name):
+    env = envs(name)
+    env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        env.step(rng.uniform(-0.3, 0.3, (env.num_envs, 4)).astype(np.float32) + hover(env))
+    before, config = task_state(env), env.config
+    variants = ("ours", "visfly") if hasattr(config, "reward") else (None,)
+    try:
+        for variant in variants:
+            env.config = config if variant is None else config.replace(reward=variant)
+            for hook in HOOKS:
+                first, second = as_tensors(getattr(env, hook)()), as_tensors(getattr(env, hook)())
+                for a, b in zip(first, second, strict=True):
+                    assert torch.equal(a, b), f"{name}.{hook} ({variant}) gave different results on a second call"
+    finally:
+        env.config = config
+    after = task_state(env)
+    for key, value in before.items():
+        assert torch.equal(value, after[key]), f"{name}: a hook changed {key}"
+
+
+def test_racing_advances_only_in_update_task_state(envs):
+    env = envs("racing")
+    env.reset()
+    place(env, [env.config.gates[0], env.config.gates[2]])
+    assert env.get_success().tolist() == [False, False] and env.passed.tolist() == [0, 0]
+    assert env.passed_now().tolist() == [1, 0]
+    env.update_task_state()
+    assert env.passed.tolist() == [1, 0]
+    env.update_task_state()  # now gate 1 is next, and agent 0 is not at it
+    assert env.passed.tolist() == [1, 0]
+
+
+def end_step(env, positions, held):
+    """Put agents at ``positions`` on the last step of their episode, having held for ``held`` steps."""
+    env.reset()
+    place(env, positions)
+    env.held = torch.full((env.num_envs,), held, dtype=torch.long)
+    env.episode_step = torch.full((env.num_envs,), env.config.max_episode_steps - 1, dtype=torch.long)
+    return env.step(hover(env))
+
+
+def test_hover_success_needs_the_radius_held_to_the_end(envs):
+    env = envs("hover")
+    limit, hold = env.config.max_episode_steps, env.hold_steps
+    assert hold == 50 and env.config.success_radius == 0.3
+    # Inside the radius vs 0.4 m away, after holding the radius for hold - 1 steps.
+    _, _, done, infos = end_step(env, [[1.0, 0.0, 1.5], [1.4, 0.0, 1.5]], hold - 1)
+    assert done.all()
+    assert [end_cause(i, i["episode"]["l"], limit) for i in infos] == ["success", "time_limit"]
+    # Inside the radius now, but not for long enough.
+    _, _, done, infos = end_step(env, [[1.0, 0.0, 1.5], [1.1, 0.0, 1.5]], hold - 2)
+    assert [end_cause(i, i["episode"]["l"], limit) for i in infos] == ["time_limit", "time_limit"]
+
+
+def test_hover_end_causes_collision_and_out_of_bounds(envs):
+    env = envs("hover")
+    env.reset()
+    place(env, [[1.0, 0.0, 0.05], [1.0, 0.0, 4.0]])  # in the floor; 2.5 m above the target
+    _, reward, done, infos = env.step(hover(env))
+    assert done.all()
+    assert [end_cause(i, i["episode"]["l"], env.config.max_episode_steps) for i in infos] == ["collision", "out_of_bounds"]
+    assert np.all(reward < -9)
+
+
+def test_tracking_target_moves_on_the_circle_and_rewards_closeness(envs):
+    env = envs("tracking")
+    cfg = env.config
+    obs = env.reset()
+    start = np.add(cfg.path_center, (cfg.path_radius, 0.0, 0.0))
+    assert np.abs(obs["state"][:, :3]).max() <= 0.31  # spawned near the target's start
+    np.testing.assert_allclose(env.target().numpy(), [start, start], atol=1e-6)
+    for _ in range(5):
+        obs, reward, _, _ = env.step(hover(env))
+    angle = cfg.path_speed * 5 * cfg.ctrl_dt
+    expected = np.add(cfg.path_center, (cfg.path_radius * np.cos(angle), cfg.path_radius * np.sin(angle), 0.0))
+    np.testing.assert_allclose(env.target()[0].numpy(), expected, atol=1e-5)
+    assert obs["path"].shape == (2, cfg.future_points, 3)
+    # Level drone: the first path point is the target relative to the drone, body = world frame.
+    level = env.state.quat.detach()[:, 0] > 0.999
+    rel = (env.target() - env.state.pos.detach()).numpy()
+    np.testing.assert_allclose(obs["path"][level.numpy(), 0], rel[level.numpy()], atol=1e-2)
+    # On the target vs 1.5 m off: positive reward vs less; 3.5 m off: out of bounds (target lost).
+    target = env.target().numpy()
+    place(env, [target[0], target[1] + (0.0, 1.5, 0.0)])
+    assert env.get_reward()[0] > 0.8 and env.get_reward()[1] < env.get_reward()[0] - 0.5
+    place(env, [target[0], target[1] + (0.0, 0.0, 3.5)])
+    assert env.out_of_bounds().tolist() == [False, True]
+
+
+def test_tracking_success_needs_the_target_held_to_the_end(envs):
+    env = envs("tracking")
+    env.reset()
+    env.episode_step = torch.full((2,), env.config.max_episode_steps - 1, dtype=torch.long)
+    target = env.target_at(env.center, torch.full((2,), float(env.config.max_episode_steps) * env.config.ctrl_dt))
+    place(env, [target[0].numpy(), target[1].numpy() + (0.8, 0.0, 0.0)])
+    env.episode_step = torch.full((2,), env.config.max_episode_steps - 1, dtype=torch.long)
+    env.held = torch.full((2,), env.hold_steps - 1, dtype=torch.long)
+    _, _, done, infos = env.step(hover(env))
+    assert done.all() and [i["is_success"] for i in infos] == [True, False]
+    assert infos[1]["TimeLimit.truncated"]
+
+
+def test_visfly_reward_variant_has_no_failure_penalty(envs):
+    env = envs("navigation")
+    env.reset()
+    place(env, [[1.0, 0.0, 0.05], [1.0, 0.0, 1.5]])  # agent 0 in the floor
+    env.step(hover(env))  # agent 0 collides (and is respawned); replay its last frame's reward terms
+    place(env, [[1.0, 0.0, 0.05], [1.0, 0.0, 1.5]])
+    env.frame = env._observe(None)
+    env.failure = env.get_failure()
+    env.success = env.get_success() & ~env.failure
+    assert env.failure.tolist() == [True, False]
+    ours = env.get_reward()
+    env.config = env.config.replace(reward="visfly")
+    try:
+        visfly = env.get_reward()
+    finally:
+        env.config = env.config.replace(reward="ours")
+    assert ours[0] < -4 and visfly[0] > -1  # ours: -5 on failure; VisFly: none
+    assert abs(visfly[1]) < 0.2  # at rest, far from obstacles: only small shaping terms
+
+
+def test_tracking_reward_is_differentiable_through_the_dynamics():
+    with make_env("tracking", num_envs=1, requires_grad=True, **small(())) as env:
+        env.reset()
+        actions = torch.zeros(1, 4, requires_grad=True)
+        for _ in range(3):
+            reward = env.step_tensor(actions).reward
+        reward.sum().backward()
+    assert actions.grad is not None and actions.grad.abs().sum() > 0
