@@ -24,6 +24,7 @@ Attributes:
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from typing import Any
@@ -42,12 +43,13 @@ class UpdateThreadsPPO(PPO):
     and reports its phase times.
 
     During rollouts torch stays at the thread count it was given (one, so it does not fight the
-    local workers for the cores); :meth:`train` sets ``update_threads`` (default: unchanged).
+    local workers for the cores); :meth:`train` sets ``update_threads`` (default: every CPU this
+    process may use).
     """
 
     def __init__(self, *args: Any, update_threads: int | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.update_threads = update_threads
+        self.update_threads = update_threads or len(os.sched_getaffinity(0))
         self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0}
 
     def _excluded_save_params(self) -> list[str]:
@@ -62,7 +64,7 @@ class UpdateThreadsPPO(PPO):
 
     def train(self) -> None:
         rollout_threads = torch.get_num_threads()
-        torch.set_num_threads(self.update_threads or rollout_threads)
+        torch.set_num_threads(self.update_threads)
         t0 = time.perf_counter()
         try:
             super().train()
