@@ -134,7 +134,7 @@ def test_visfly_reward_variant_has_no_failure_penalty(envs):
     place(env, [[1.0, 0.0, 0.05], [1.0, 0.0, 1.5]])  # agent 0 in the floor
     env.step(hover(env))  # agent 0 collides (and is respawned); replay its last frame's reward terms
     place(env, [[1.0, 0.0, 0.05], [1.0, 0.0, 1.5]])
-    env.frame = env._observe(None)
+    env.frame = env._frame(env.aggregator.observe(env.state.pose().detach().numpy()))
     env.failure = env.get_failure()
     env.success = env.get_success() & ~env.failure
     assert env.failure.tolist() == [True, False]
