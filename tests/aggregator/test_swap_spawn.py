@@ -75,3 +75,14 @@ def test_swap_after_enough_resets_happens_in_the_background(pair):
     assert wait_for(lambda: (agg.observe(poses), not agg.background_busy())[1], timeout=30)
     health = {h["worker_id"]: h["scenes"] for h in agg.health()}
     assert sorted(k for keys in health.values() for k in keys) == sorted(s.key for s in agg.table.slots)  # old keys unloaded
+
+
+def test_spawn_pools_are_refreshed_and_stay_deterministic():
+    draws = []
+    for _ in range(2):
+        with make_aggregator(pool={"num_local_workers": 1}, scenes=SCENES, seed=9) as agg:
+            draws.append(np.concatenate([_spawn(agg, [0] * 64) for _ in range(12)]))  # 768 from a 256-point pool
+    draws_a, draws_b = draws
+    np.testing.assert_array_equal(draws_a, draws_b)  # refreshes swap in at a draw count, not a time
+    first, last = {tuple(p) for p in draws_a[:256]}, {tuple(p) for p in draws_a[-128:]}
+    assert len(last - first) > 64  # later draws come from fresh samples

@@ -91,6 +91,7 @@ class _Background:
     slot: int = -1
     move: Move | None = None
     spec: tuple | None = None
+    refresh: bool = False
 
 
 class Aggregator:
@@ -145,7 +146,8 @@ class Aggregator:
         self._collects = 0
         self._spawn_pools: dict[tuple, np.ndarray] = {}
         self._spawn_draws: dict[tuple, int] = {}
-        self._spawn_refresh: dict[tuple, int] = {}
+        self._spawn_generation: dict[tuple, int] = {}  # refreshes asked for, per pool (seeds them)
+        self._spawn_next: dict[tuple, np.ndarray] = {}  # a refresh that arrived, used once the pool is drawn
         self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
         self._rng = np.random.default_rng(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
@@ -554,31 +556,32 @@ class Aggregator:
         return (slot, self.table.slots[slot].source, spec)
 
     def _count_draws(self, slot: int, key: tuple, n: int) -> None:
+        """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn."""
         drawn = self._spawn_draws.get(key, 0) + n
         self._spawn_draws[key] = drawn
         size = len(self._spawn_pools[key])
         s = self.table.slots[slot]
-        if drawn >= size // 2 and key not in self._spawn_refresh and s.worker is not None:
-            self._spawn_refresh[key] = 1
+        in_flight = [j for j in self._background if j.kind == "spawn" and j.spec == key]
+        if drawn >= size // 2 and not in_flight and key not in self._spawn_next and s.worker is not None:
+            self._spawn_generation[key] = self._spawn_generation.get(key, 0) + 1
             self._background.append(self._spawn_job(slot, s.worker, s.key, s.source, key[2], refresh=True))
-        if drawn >= size and any(j.kind == "spawn" and j.spec == key for j in self._background):
-            self._apply_background_wait(key)
-
-    def _apply_background_wait(self, key: tuple) -> None:
-        """A pool is used up: wait (bounded) for its refresh so the draws stay deterministic."""
-        jobs = [j for j in self._background if j.kind == "spawn" and j.spec == key]
-        self._pool.wait_any([[j.pending for j in jobs]], self.pool_config.step_timeout_s)
-        self._apply_background()
+        elif drawn >= size:
+            if in_flight:  # bounded wait, so the same seed gives the same positions
+                self._pool.wait_any([[j.pending for j in in_flight]], self.pool_config.step_timeout_s)
+                self._apply_background()
+            if key in self._spawn_next:
+                self._spawn_pools[key] = self._spawn_next.pop(key)
+                self._spawn_draws[key] = 0
 
     def _spawn_job(self, slot: int, worker: str, scene_key: str, source: str, spec: tuple,
                    refresh: bool = False) -> _Background:
         distribution, a, b, clearance = spec
         n = max(SPAWN_POOL_MIN, 8 * self.agents_per_scene)
-        generation = self._spawn_refresh.get((slot, source, spec), 0) + int(refresh)
+        generation = self._spawn_generation.get((slot, source, spec), 0)
         seed = zlib.crc32(repr((self.seed, slot, source, spec, generation)).encode())
         message = SampleSpawn(scene_key, n, clearance, distribution, a, b, seed).to_message()
         (pending,) = self._pool.send([(worker, message)], self.pool_config.step_timeout_s)
-        return _Background("spawn", pending, slot, spec=(slot, source, spec))
+        return _Background("spawn", pending, slot, spec=(slot, source, spec), refresh=refresh)
 
     def _finish_spawn(self, job: _Background, reply: Reply, still: list[_Background]) -> None:
         slot, source, spec = job.spec  # type: ignore[misc]
@@ -594,6 +597,9 @@ class Aggregator:
         positions = np.asarray(reply.message["positions"], dtype=np.float64).reshape(-1, 3)
         if len(positions) == 0:
             raise RemoteError(reply.worker_id, "SceneError", f"no free spawn position in {source!r} for {spec}")
+        if job.refresh:
+            self._spawn_next[job.spec] = positions
+            return
         self._spawn_pools[job.spec] = positions
         self._spawn_draws[job.spec] = 0
         if switch is not None and switch[0].source == source:
