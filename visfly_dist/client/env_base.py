@@ -153,8 +153,6 @@ class DroneEnvBase(VecEnv):
         self.step_timings: dict[str, float] = {}
         # Each agent's next start, drawn ahead so its first view travels with an earlier step.
         self._next_pos = torch.zeros(n, 3, device=self.device)
-        self._next_pose = np.zeros((n, 7), dtype=np.float32)
-        self._next_pose[:, 3] = 1.0
         self._prepared = np.zeros(n, dtype=bool)
         self._prepared_obs = empty_observation(self.aggregator.cameras, n)
         self._switched = torch.zeros(n, dtype=torch.bool, device=self.device)  # scene swapped, not yet reported
@@ -198,6 +196,23 @@ class DroneEnvBase(VecEnv):
         spawn = self.spawn_distribution()
         pos = self.aggregator.sample_spawn(idx.cpu().numpy(), spawn.distribution, spawn.a, spawn.b, spawn.clearance)
         return torch.as_tensor(np.asarray(pos, dtype=np.float32), device=self.device)
+
+    def spawn_around(self, idx: torch.Tensor, centres: np.ndarray, half_width: Sequence[float],
+                     clearance: float) -> torch.Tensor:
+        """Start positions ``(k, 3)`` of agents ``idx``, uniform in ``centres[i] ± half_width``.
+
+        For tasks whose start box follows a per-scene point (a target, a pad, a lane): one pooled
+        draw per distinct centre.
+        """
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+        out = torch.zeros(len(idx), 3, device=self.device)
+        for centre in np.unique(centres, axis=0):
+            rows = np.flatnonzero((centres == centre).all(axis=1))
+            spawn = Spawn.around(centre, half_width, clearance)
+            pos = self.aggregator.sample_spawn(idx[rows].cpu().numpy(), spawn.distribution, spawn.a, spawn.b,
+                                               spawn.clearance)
+            out[torch.as_tensor(rows)] = torch.as_tensor(np.asarray(pos), dtype=torch.float32, device=self.device)
+        return out
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         """Called after agents ``idx`` got their new state, before their first observation."""
@@ -270,7 +285,7 @@ class DroneEnvBase(VecEnv):
         spawn_agents = np.flatnonzero(~self._prepared & members)
         poses = self.state.pose().detach().cpu().numpy()
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
-                                        spawn_poses=self._next_pose[spawn_agents], spawn_agents=spawn_agents)
+                                        spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents)
         return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0)
 
     def _finish(self, flight: _InFlight) -> StepResult:
@@ -393,13 +408,16 @@ class DroneEnvBase(VecEnv):
         """Draw the start of the next episode of agents ``idx`` (its view is rendered with the next step)."""
         if len(idx) == 0:
             return
-        pos = self.spawn_positions(idx)
-        fresh = self.quad.initial_state(torch.zeros(self.num_envs, 3, device=self.device))
-        self._next_pos[idx] = pos.detach().to(self._next_pos.dtype)
-        poses = fresh.pose().detach().cpu().numpy()
-        poses[:, :3] = self._next_pos.cpu().numpy()
-        self._next_pose[idx.cpu().numpy()] = poses[idx.cpu().numpy()]
+        self._next_pos[idx] = self.spawn_positions(idx).detach().to(self._next_pos.dtype)
         self._prepared[idx.cpu().numpy()] = False
+
+    def _start_poses(self, agents: np.ndarray) -> np.ndarray:
+        """``(k, 7)`` poses of the agents' next starts: at ``_next_pos``, level and at rest, as
+        ``Quadrotor.initial_state`` puts them."""
+        poses = np.zeros((len(agents), 7), dtype=np.float32)
+        poses[:, :3] = self._next_pos[torch.as_tensor(agents, dtype=torch.long)].cpu().numpy()
+        poses[:, 3] = 1.0
+        return poses
 
     def _observation(self) -> dict[str, torch.Tensor]:
         obs = self.get_observation()
@@ -419,7 +437,7 @@ class DroneEnvBase(VecEnv):
         self.reset_agents_hook(idx)
         missing = idx_np[~self._prepared[idx_np]]
         if len(missing):  # first reset, a swapped scene, or a failed worker: render now (a second round trip)
-            obs = self.aggregator.observe(self._next_pose[missing], agents=missing)
+            obs = self.aggregator.observe(self._start_poses(missing), agents=missing)
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
         self.frame = rows if observation is None else self.frame.scatter(idx, rows)

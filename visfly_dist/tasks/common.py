@@ -108,3 +108,9 @@ def attitude_error(quat: torch.Tensor) -> torch.Tensor:
 def held_steps(held: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
     """``(N,)`` consecutive steps inside a region, counting this one: ``held + 1`` where ``inside``, else 0."""
     return torch.where(inside, held + 1, torch.zeros_like(held))
+
+
+def visfly_hover_reward(quat: torch.Tensor, vel: torch.Tensor, omega: torch.Tensor, distance: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` VisFly's hover/tracking reward: 0.1 at the target, falling with distance, small
+    attitude, speed and spin penalties."""
+    return 0.1 - 0.1 / 9 * distance - 1e-5 * attitude_error(quat) - 0.002 * vel.norm(dim=1) - 0.002 * omega.norm(dim=1)

@@ -102,15 +102,8 @@ class GapCrossingEnv(MultiDroneEnvBase):
     def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
         # One lane per team rank, in front of that rank's target.
         cfg = self.config
-        out = torch.zeros(len(idx), 3, device=self.device)
-        lane_y = np.array([self._targets_of(int(i))[1] for i in idx.tolist()])
-        for y in np.unique(lane_y):
-            rows = np.flatnonzero(lane_y == y)
-            center = (cfg.spawn_x, float(y), cfg.spawn_z)
-            low, high = np.subtract(center, cfg.spawn_half_width), np.add(center, cfg.spawn_half_width)
-            pos = self.aggregator.sample_spawn(idx[rows].cpu().numpy(), "uniform", tuple(low), tuple(high), 0.5)
-            out[torch.as_tensor(rows)] = torch.as_tensor(np.asarray(pos), dtype=torch.float32, device=self.device)
-        return out
+        centres = [(cfg.spawn_x, float(self._targets_of(int(i))[1]), cfg.spawn_z) for i in idx.tolist()]
+        return self.spawn_around(idx, np.array(centres), cfg.spawn_half_width, clearance=0.5)
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         for i in idx.tolist():

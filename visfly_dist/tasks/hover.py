@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 from visfly_dist.client.config import EnvConfig
-from visfly_dist.client.env_base import DroneEnvBase, Spawn
-from visfly_dist.tasks.common import attitude_error, held_steps, metadata_point, reward_problem, vec3_problem
+from visfly_dist.client.env_base import DroneEnvBase
+from visfly_dist.tasks.common import held_steps, metadata_point, reward_problem, vec3_problem, visfly_hover_reward
 
 
 @dataclass
@@ -86,16 +86,9 @@ class HoverEnv(DroneEnvBase):
         return metadata_point(self.scene_metadata(agent), "goal", self.config.target)
 
     def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
-        # The spawn box follows each scene's target; one request per distinct target.
-        targets = np.array([self._target_of(int(i)) for i in idx.tolist()]).reshape(-1, 3)
-        out = torch.zeros(len(idx), 3, device=self.device)
-        for target in np.unique(targets, axis=0):
-            rows = np.flatnonzero((targets == target).all(axis=1))
-            spawn = Spawn.around(target, self.config.spawn_half_width, clearance=0.3)
-            pos = self.aggregator.sample_spawn(idx[rows].cpu().numpy(), spawn.distribution, spawn.a, spawn.b,
-                                               spawn.clearance)
-            out[torch.as_tensor(rows)] = torch.as_tensor(np.asarray(pos), dtype=torch.float32, device=self.device)
-        return out
+        # The spawn box follows each scene's target.
+        targets = [self._target_of(int(i)) for i in idx.tolist()]
+        return self.spawn_around(idx, np.array(targets), self.config.spawn_half_width, clearance=0.3)
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         targets = np.array([self._target_of(int(i)) for i in idx.tolist()]).reshape(-1, 3)
@@ -123,8 +116,7 @@ class HoverEnv(DroneEnvBase):
     def get_reward(self) -> torch.Tensor:
         s, d = self.state, self.distance()
         if self.config.reward == "visfly":
-            return (0.1 - 0.1 / 9 * d - 1e-5 * attitude_error(s.quat) - 0.002 * s.vel.norm(dim=1)
-                    - 0.002 * s.omega.norm(dim=1))
+            return visfly_hover_reward(s.quat, s.vel, s.omega, d)
         reward = 1.0 - 0.5 * d - 0.05 * s.vel.norm(dim=1) - 0.02 * s.omega.norm(dim=1)
         return reward - self.config.fail_penalty * self.failure.float()
 

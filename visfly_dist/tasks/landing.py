@@ -36,7 +36,7 @@ import torch
 from gymnasium import spaces
 
 from visfly_dist.client.config import EnvConfig
-from visfly_dist.client.env_base import DroneEnvBase, Spawn
+from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import metadata_point, progress_speed, reward_problem, vec3_problem
 
@@ -110,16 +110,9 @@ class LandingEnv(DroneEnvBase):
         return out
 
     def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
-        # The spawn box follows each scene's pad; one request per distinct pad.
+        # The spawn box follows each scene's pad, spawn_height above it.
         pads = np.array([self._pad_of(int(i)) for i in idx.tolist()]).reshape(-1, 3)
-        out = torch.zeros(len(idx), 3, device=self.device)
-        for pad in np.unique(pads, axis=0):
-            rows = np.flatnonzero((pads == pad).all(axis=1))
-            spawn = Spawn.around(pad + (0.0, 0.0, self.config.spawn_height), self.config.spawn_half_width, 0.3)
-            pos = self.aggregator.sample_spawn(idx[rows].cpu().numpy(), spawn.distribution, spawn.a, spawn.b,
-                                               spawn.clearance)
-            out[torch.as_tensor(rows)] = torch.as_tensor(np.asarray(pos), dtype=torch.float32, device=self.device)
-        return out
+        return self.spawn_around(idx, pads + (0.0, 0.0, self.config.spawn_height), self.config.spawn_half_width, 0.3)
 
     def _pad_of(self, agent: int) -> np.ndarray:
         return metadata_point(self.scene_metadata(agent), "pad_center", self.config.pad_center)

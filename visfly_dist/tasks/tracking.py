@@ -37,7 +37,7 @@ from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import (
-    attitude_error, held_steps, metadata_point, reward_problem, to_body, vec3_problem,
+    held_steps, metadata_point, reward_problem, to_body, vec3_problem, visfly_hover_reward,
 )
 from visfly_dist.tasks.navigation import FORWARD_DEPTH
 
@@ -137,16 +137,10 @@ class TrackingEnv(DroneEnvBase):
         return (self.state.pos - self.target()).norm(dim=1)
 
     def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
-        # Around the target's start point of each scene; one request per distinct start.
+        # Around the target's start point of each scene.
         cfg = self.config
         starts = np.array([self._center_of(int(i)) for i in idx.tolist()]).reshape(-1, 3) + (cfg.path_radius, 0.0, 0.0)
-        out = torch.zeros(len(idx), 3, device=self.device)
-        for start in np.unique(starts, axis=0):
-            rows = np.flatnonzero((starts == start).all(axis=1))
-            low, high = start - np.asarray(cfg.spawn_half_width), start + np.asarray(cfg.spawn_half_width)
-            pos = self.aggregator.sample_spawn(idx[rows].cpu().numpy(), "uniform", tuple(low), tuple(high), 0.3)
-            out[torch.as_tensor(rows)] = torch.as_tensor(np.asarray(pos), dtype=torch.float32, device=self.device)
-        return out
+        return self.spawn_around(idx, starts, cfg.spawn_half_width, clearance=0.3)
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         centers = np.array([self._center_of(int(i)) for i in idx.tolist()]).reshape(-1, 3)
@@ -176,8 +170,7 @@ class TrackingEnv(DroneEnvBase):
     def get_reward(self) -> torch.Tensor:
         s, d = self.state, self.distance()
         if self.config.reward == "visfly":
-            return (0.1 - 0.1 / 9 * d - 1e-5 * attitude_error(s.quat) - 0.002 * s.vel.norm(dim=1)
-                    - 0.002 * s.omega.norm(dim=1))
+            return visfly_hover_reward(s.quat, s.vel, s.omega, d)
         reward = 1.0 - 0.5 * d - 0.05 * (s.vel - self.target_velocity()).norm(dim=1) - 0.02 * s.omega.norm(dim=1)
         return reward - self.config.fail_penalty * self.failure.float()
 

@@ -203,17 +203,7 @@ int vf_closest(const void* mesh, const double* positions, int64_t n, int32_t thr
         for (int64_t i = start; i < std::min(start + CHUNK, n); ++i) closest_one(m, positions + 3 * i, dist + i, nearest + 3 * i);
       }
     };
-    const int64_t helpers = std::min<int64_t>(std::max(threads, 1), (n + CHUNK - 1) / CHUNK) - 1;
-    std::vector<std::thread> pool;
-    for (int64_t t = 0; t < helpers; ++t) {
-      try {
-        pool.emplace_back(work);
-      } catch (const std::system_error&) {
-        break;  // fewer threads than asked: the ones running (and this one) finish the work
-      }
-    }
-    work();
-    for (auto& t : pool) t.join();
+    visfly::run_on_threads(std::min<int64_t>(std::max(threads, 1), (n + CHUNK - 1) / CHUNK) - 1, work);
     return 0;
   } catch (const std::exception& e) {
     visfly::set_error(e.what());

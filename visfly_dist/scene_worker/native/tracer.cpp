@@ -280,18 +280,7 @@ int vf_trace(const vf_batch* batches, int32_t count, int32_t threads) {
         if (batches[k].vis_offsets != nullptr) draw_drones(batches[k], static_cast<int32_t>(f - first[k]));
       }
     };
-    const int64_t helpers = std::min<int64_t>(std::max(threads, 1), frames) - 1;
-    std::vector<std::thread> pool;
-    pool.reserve(static_cast<size_t>(std::max<int64_t>(helpers, 0)));
-    for (int64_t t = 0; t < helpers; ++t) {
-      try {
-        pool.emplace_back(work);
-      } catch (const std::system_error&) {
-        break;  // fewer threads than asked: the ones running (and this one) finish the work
-      }
-    }
-    work();
-    for (auto& t : pool) t.join();
+    visfly::run_on_threads(std::min<int64_t>(std::max(threads, 1), frames) - 1, work);
     return 0;
   } catch (const std::exception& e) {
     last_error = e.what();
