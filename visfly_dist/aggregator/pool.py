@@ -324,7 +324,7 @@ class WorkerPool:
             pending = Pending(wid, timeout_s, self._replies)
             self._session.get(keys.worker_rpc(self.run_id, wid), payload=encode(message), timeout=timeout_s,
                               consolidation=zenoh.ConsolidationMode.NONE,
-                              handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done))
+                              handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done, indirect=False))
             out.append(pending)
         return out
 

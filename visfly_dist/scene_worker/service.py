@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+import zenoh
 
 from visfly_dist.errors import ConfigError, ErrorCode, ProtocolError, SceneError, VisflyError
 from visfly_dist.protocol import keys
@@ -141,7 +142,8 @@ class SceneWorker:
         self._session = open_session(self.session_config)
         try:
             self._refuse_duplicate_id()
-            self._queryable = self._session.declare_queryable(self.rpc_key, self._inbox.put)
+            self._queryable = self._session.declare_queryable(
+                self.rpc_key, zenoh.handlers.Callback(self._inbox.put, indirect=False))
             self._token = self._session.liveliness().declare_token(self.alive_key)
         except BaseException:
             self.close()
