@@ -171,3 +171,29 @@ def test_a_closed_room_facing_inwards_is_free_space_inside():
     r = q.query(np.array([[0.0, 0.0, 0.0], [4.0, 4.0, 1.5]]), 5.0)
     np.testing.assert_array_equal(r.inside, [False, False])
     np.testing.assert_allclose(r.distance, [2.0, 0.5], atol=1e-6)
+
+
+@pytest.mark.parametrize("backend", ["native", "fcl"])
+def test_several_scenes_in_one_call_answer_as_each_scene_alone(backend):
+    """query_scenes (a worker's scenes together, one native call) equals each scene's own query,
+    row for row, with scenes of other sizes, drone radii, an empty scene and a scene with no rows."""
+    from visfly_dist.scene_worker import render_native
+    from visfly_dist.scene_worker.queries import query_scenes
+
+    if backend == "native" and not render_native.available():
+        pytest.skip("native library not built")
+    rng = np.random.default_rng(11)
+    scenes = []
+    for k, size in enumerate((2.0, 1.0, 3.0)):
+        box = trimesh.creation.box((size, size, size))
+        box.apply_translation((k, 0, 0))
+        scenes.append(Scene(f"s{k}", [SceneObject("box", 1, box)], np.array([[-9, -9, -9], [9, 9, 9]])))
+    scenes.append(Scene("empty", [], np.array([[0, 0, 0], [1, 1, 1]])))
+    queries = [ObstacleQueries(s, drone_radius=r, backend=backend) for s, r in zip(scenes, (0.1, 0.3, 0.2, 0.1))]
+    items = [(q, rng.uniform(-3, 3, size=(n, 3))) for q, n in zip(queries, (7, 0, 12, 3))]
+    together = query_scenes(items, 2.0)
+    alone = [q.query(p, 2.0) for q, p in items]
+    for field in ("collision", "inside", "nearest", "distance"):
+        expected = np.concatenate([getattr(a, field) for a in alone])
+        np.testing.assert_array_equal(getattr(together, field), expected, err_msg=field)
+    assert together.inside.any() and together.collision.any() and not together.collision.all()

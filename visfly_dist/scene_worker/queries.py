@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Sequence
 
 import fcl
 import numpy as np
@@ -150,20 +151,9 @@ class ObstacleQueries:
             search_radius: cap on the reported distance, metres (>= 0).
         """
         positions = _check_positions(positions)
-        if not (np.isfinite(search_radius) and search_radius >= 0):
-            raise ConfigError(f"search_radius={search_radius!r} must be a finite number >= 0")
+        _check_search_radius(search_radius)
         dist, points = self._closest(positions)
-        inside = self._inside(positions, dist)
-        unit = (points - positions) / np.where(dist > 0, dist, 1.0)[:, None]   # 0 on a surface and when empty
-        unit[dist == np.inf] = (0.0, 0.0, -1.0)
-        capped = np.minimum(dist, search_radius)
-        nearest = np.where(inside[:, None], points, positions + unit * capped[:, None])
-        return QueryResult(
-            collision=(dist <= self.drone_radius) | inside,
-            inside=inside,
-            nearest=nearest.astype(np.float32),
-            distance=np.where(inside, 0.0, capped).astype(np.float32),
-        )
+        return _answers(positions, dist, points, self._inside(positions, dist), self.drone_radius, search_radius)
 
     def distance(self, positions: np.ndarray) -> np.ndarray:
         """Signed distance ``(n,)`` float64 from each point to the nearest obstacle surface.
@@ -244,6 +234,59 @@ class ObstacleQueries:
         odd = np.zeros(m, bool)
         odd[keys[counts % 2 == 1] // self._num_solids] = True
         return odd
+
+
+def query_scenes(items: Sequence[tuple[ObstacleQueries, np.ndarray]], search_radius: float) -> QueryResult:
+    """:meth:`ObstacleQueries.query` of several scenes at once, rows concatenated in item order.
+
+    The nearest points of every native scene come from ONE native call; the inside test runs only
+    for scenes with a position near a solid; the answer arithmetic is vectorised over all rows.
+    So a worker holding many scenes of one drone each pays about what one scene of many drones costs.
+    """
+    _check_search_radius(search_radius)
+    counts = [len(p) for _, p in items]
+    positions = _check_positions(np.concatenate([np.asarray(p, np.float64).reshape(-1, 3) for _, p in items])
+                                 if items else np.zeros((0, 3)))
+    ends = np.cumsum(counts)
+    starts = ends - counts
+    dist = np.full(len(positions), np.inf)
+    points = positions.copy()
+    native = [k for k, (q, _) in enumerate(items) if q._native is not None and counts[k]]
+    if native:
+        rows = np.concatenate([np.arange(starts[k], ends[k]) for k in native])
+        group = np.repeat(np.arange(len(native), dtype=np.int32), [counts[k] for k in native])
+        threads = min(items[native[0]][0]._max_threads, -(-len(rows) // POSITIONS_PER_THREAD))
+        dist[rows], points[rows] = render_native.closest_many([items[k][0]._native for k in native], group,
+                                                               positions[rows], threads)
+    inside = np.zeros(len(positions), bool)
+    radius = np.repeat([q.drone_radius for q, _ in items], counts) if items else np.zeros(0)
+    for k, (q, _) in enumerate(items):
+        rows = slice(starts[k], ends[k])
+        if q._native is None and counts[k]:
+            dist[rows], points[rows] = q._closest(positions[rows])
+        if q._embree is not None and counts[k] and (dist[rows] <= q._max_depth).any():
+            inside[rows] = q._inside(positions[rows], dist[rows])
+    return _answers(positions, dist, points, inside, radius, search_radius)
+
+
+def _answers(positions: np.ndarray, dist: np.ndarray, points: np.ndarray, inside: np.ndarray,
+             drone_radius: float | np.ndarray, search_radius: float) -> QueryResult:
+    """The query answers from each position's unsigned distance, nearest surface point and inside-ness."""
+    unit = (points - positions) / np.where(dist > 0, dist, 1.0)[:, None]   # 0 on a surface and when empty
+    unit[dist == np.inf] = (0.0, 0.0, -1.0)
+    capped = np.minimum(dist, search_radius)
+    nearest = np.where(inside[:, None], points, positions + unit * capped[:, None])
+    return QueryResult(
+        collision=(dist <= drone_radius) | inside,
+        inside=inside,
+        nearest=nearest.astype(np.float32),
+        distance=np.where(inside, 0.0, capped).astype(np.float32),
+    )
+
+
+def _check_search_radius(search_radius: float) -> None:
+    if not (np.isfinite(search_radius) and search_radius >= 0):
+        raise ConfigError(f"search_radius={search_radius!r} must be a finite number >= 0")
 
 
 def _check_positions(positions: np.ndarray) -> np.ndarray:

@@ -26,7 +26,7 @@ import numpy as np
 from visfly_dist.errors import ConfigError
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
-LIBRARY_VERSION = 3
+LIBRARY_VERSION = 4
 DISABLE_ENV = "VISFLY_NATIVE_TRACER"
 
 _f32p = ctypes.POINTER(ctypes.c_float)
@@ -77,6 +77,9 @@ def load_library() -> tuple[ctypes.CDLL | None, str]:
         lib.vf_closest.restype = ctypes.c_int
         lib.vf_closest.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p,
                                    ctypes.c_void_p]   # raw addresses: data_as() would cost more than one query
+        lib.vf_closest_many.restype = ctypes.c_int
+        lib.vf_closest_many.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32,
+                                        ctypes.c_void_p, ctypes.c_void_p]
     except (OSError, AttributeError) as exc:
         return None, f"{LIBRARY_PATH} failed to load: {exc}"
     return lib, "loaded"
@@ -174,6 +177,34 @@ class NativeMesh:
 
     def __del__(self) -> None:  # last resort
         self.close()
+
+
+def closest_many(meshes: Sequence[NativeMesh], group: np.ndarray, positions: np.ndarray,
+                 threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`NativeMesh.closest` of row ``i`` of ``positions`` against ``meshes[group[i]]``, for
+    every row in ONE native call (a worker's scenes together).
+
+    Args:
+        meshes: the meshes, each open.
+        group: ``(n,)`` index into ``meshes`` of each row.
+        positions: ``(n, 3)`` world positions.
+    """
+    lib = _lib()
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    group = np.ascontiguousarray(group, dtype=np.int32)
+    if pos.ndim != 2 or pos.shape[1] != 3 or group.shape != (len(pos),):
+        raise ConfigError(f"positions {pos.shape} must be (n, 3) and group {group.shape} must be (n,)")
+    if any(m.handle is None for m in meshes):
+        raise ConfigError("closest_many() on a closed NativeMesh")
+    if len(group) and (group.min() < 0 or group.max() >= len(meshes)):
+        raise ConfigError(f"group indices must be in [0, {len(meshes)})")
+    dist = np.empty(len(pos))
+    nearest = np.empty((len(pos), 3))
+    handles = (ctypes.c_void_p * max(1, len(meshes)))(*(m.handle for m in meshes))
+    if len(pos) and lib.vf_closest_many(handles, group.ctypes.data, pos.ctypes.data, len(pos), int(threads),
+                                        dist.ctypes.data, nearest.ctypes.data) != 0:
+        raise _error(lib, f"closest points of {len(pos)} positions in {len(meshes)} meshes")
+    return dist, nearest
 
 
 @dataclass

@@ -42,6 +42,7 @@ from visfly_dist.protocol.messages import (
 from visfly_dist.protocol.session import SessionConfig, open_session
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, render_scenes
 from visfly_dist.scene_worker.limits import WorkerLimits
+from visfly_dist.scene_worker.queries import query_scenes
 from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
 from visfly_dist.scene_worker.render_raycast import default_tracer
 from visfly_dist.scene_worker.timing import StageTimer
@@ -397,9 +398,10 @@ class SceneWorker:
                                    for c in cameras}
         if request.query:
             with self._timer.time("query", timings):
-                parts = [_query(scene, item.poses, request.search_radius) for item, scene in zip(request.scenes, loaded)]
-                for key, shape, dtype in QUERY_FIELDS:
-                    reply[key] = _concat([p[key] for p in parts], shape, dtype)
+                answers = query_scenes([(scene.queries, item.poses[:, :3]) for item, scene in zip(request.scenes, loaded)],
+                                       request.search_radius)
+                reply.update(collision=answers.collision, inside=answers.inside, nearest=answers.nearest,
+                             distance=answers.distance)
         return reply
 
     def _check_pixels(self, request: StepRequest, loaded: Sequence[LoadedScene]) -> None:
@@ -427,21 +429,8 @@ class SceneWorker:
                 "timings": self._timer.summary()}
 
 
-QUERY_FIELDS = (("collision", (0,), bool), ("inside", (0,), bool), ("nearest", (0, 3), np.float32),
-                ("distance", (0,), np.float32))
-
-
 def _concat(parts: list[np.ndarray], empty_shape: tuple[int, ...], dtype: Any) -> np.ndarray:
     """One array of every entry's rows (no copy for a single entry)."""
     if len(parts) == 1:
         return parts[0]
     return np.concatenate(parts) if parts else np.zeros(empty_shape, dtype=dtype)
-
-
-def _query(scene: LoadedScene, poses: np.ndarray, search_radius: float) -> dict[str, np.ndarray]:
-    if len(poses) == 0:
-        return {"collision": np.zeros(0, bool), "inside": np.zeros(0, bool),
-                "nearest": np.zeros((0, 3), np.float32), "distance": np.zeros(0, np.float32)}
-    q = scene.queries.query(poses[:, :3], search_radius)
-    return {"collision": np.asarray(q.collision, dtype=bool), "inside": np.asarray(q.inside, dtype=bool),
-            "nearest": np.asarray(q.nearest, dtype=np.float32), "distance": np.asarray(q.distance, dtype=np.float32)}

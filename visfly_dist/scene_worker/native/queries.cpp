@@ -211,4 +211,26 @@ int vf_closest(const void* mesh, const double* positions, int64_t n, int32_t thr
   }
 }
 
+// The same over rows of several meshes in one call: row i is answered against meshes[group[i]]
+// (so a worker's scenes share one call, one GIL release and one set of threads).
+int vf_closest_many(const void* const* meshes, const int32_t* group, const double* positions, int64_t n,
+                    int32_t threads, double* dist, double* nearest) {
+  try {
+    std::atomic<int64_t> next{0};
+    auto work = [&]() {
+      for (int64_t start = next.fetch_add(CHUNK); start < n; start = next.fetch_add(CHUNK)) {
+        for (int64_t i = start; i < std::min(start + CHUNK, n); ++i) {
+          const Mesh& m = *static_cast<const Mesh*>(meshes[group[i]]);
+          closest_one(m, positions + 3 * i, dist + i, nearest + 3 * i);
+        }
+      }
+    };
+    visfly::run_on_threads(std::min<int64_t>(std::max(threads, 1), (n + CHUNK - 1) / CHUNK) - 1, work);
+    return 0;
+  } catch (const std::exception& e) {
+    visfly::set_error(e.what());
+    return 1;
+  }
+}
+
 }  // extern "C"

@@ -97,7 +97,7 @@ struct vf_batch {
 
 const char* vf_last_error(void) { return last_error.c_str(); }
 
-int vf_version(void) { return 3; }
+int vf_version(void) { return 4; }
 
 // Build a robust Embree scene from a triangle soup (triangles, 3 vertices, xyz) and its BVH.
 void* vf_scene_new(const float* triangles, int64_t count) {
