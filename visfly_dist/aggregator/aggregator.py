@@ -660,8 +660,9 @@ class Aggregator:
         counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
         gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
         plan = []
-        for slot in self.table.slots:
-            slot.resets += int(counts[slot.index])
+        for index in np.flatnonzero(counts).tolist():
+            slot = self.table.slots[index]
+            slot.resets += int(counts[index])
             if slot.resets >= every and slot.move is None:
                 slot.resets = 0
                 move = self.table.plan_swap(slot.index, self.dataset.next_source(), gens)
