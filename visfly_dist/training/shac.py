@@ -35,6 +35,15 @@ from visfly_dist.training.ppo import TrainResult, write_config
 TARGET_ALPHA = 0.2
 """Share of the old target critic kept at each update (SHAC's ``target_critic_alpha``)."""
 
+VALUE_RAMP_WINDOWS = 50
+"""The actor's gradient through the critic's value grows from 0 to full over this many windows,
+while the critic learns (its value in the loss, and in the critic's targets, is always whole)."""
+
+
+def scale_gradient(x: torch.Tensor, weight: float) -> torch.Tensor:
+    """``x`` whose gradient is scaled by ``weight`` (its value unchanged)."""
+    return x if weight == 1.0 else weight * x + (1 - weight) * x.detach()
+
 
 def lambda_returns(window: Window, values: torch.Tensor, gamma: float, lam: float) -> torch.Tensor:
     """``(T, N)`` TD(lambda) targets of the window's observations.
@@ -61,7 +70,8 @@ def lambda_returns(window: Window, values: torch.Tensor, gamma: float, lam: floa
 
 def fit_critic(critic: Critic, optimizer: torch.optim.Optimizer, obs: dict[str, torch.Tensor], targets: torch.Tensor,
                epochs: int, batch_size: int, generator: torch.Generator) -> float:
-    """``epochs`` passes of shuffled minibatches of MSE towards ``targets``; the last pass's mean loss."""
+    """``epochs`` passes of shuffled minibatches of MSE towards ``targets`` (in the critic's normalised
+    units, see :meth:`Critic.normalize`); the last pass's mean loss."""
     n = len(targets)
     loss_sum = 0.0
     for _ in range(epochs):
@@ -69,7 +79,7 @@ def fit_critic(critic: Critic, optimizer: torch.optim.Optimizer, obs: dict[str, 
         loss_sum, batches = 0.0, 0
         for start in range(0, n, batch_size):
             idx = order[start:start + batch_size]
-            loss = (critic({k: v[idx] for k, v in obs.items()}) - targets[idx]).square().mean()
+            loss = (critic.normalized({k: v[idx] for k, v in obs.items()}) - targets[idx]).square().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             clip_and_step(optimizer, list(critic.parameters()))
@@ -105,7 +115,9 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
         try:
             while p.timesteps < cfg.timesteps:
                 # Actor: the window's loss, through the dynamics and the target critic's input.
-                window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma, value=target)
+                weight = min(1.0, p.windows / VALUE_RAMP_WINDOWS)
+                window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma,
+                                        value=lambda o: scale_gradient(target(o), weight))
                 p.timesteps += window.steps * env.num_envs
                 actor_opt.zero_grad(set_to_none=True)
                 window.loss.backward()
@@ -121,11 +133,15 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
                     values = target(stacked).reshape(window.steps, -1)
                     targets = lambda_returns(window, values, cfg.gamma, cfg.gae_lambda)
                 keep = window.valid.flatten()
+                critic.update_scale(targets.flatten()[keep])
                 critic_loss = fit_critic(critic, critic_opt, {k: v[keep] for k, v in stacked.items()},
-                                         targets.flatten()[keep], cfg.n_epochs, cfg.batch_size, shuffle)
+                                         critic.normalize(targets.flatten()[keep]), cfg.n_epochs, cfg.batch_size,
+                                         shuffle)
                 with torch.no_grad():
                     for t_param, param in zip(target.parameters(), critic.parameters()):
                         t_param.lerp_(param, 1 - TARGET_ALPHA)
+                    for t_buf, buf in zip(target.buffers(), critic.buffers()):
+                        t_buf.copy_(buf)
                 p.windows += 1
 
                 log.add(window.episodes)
