@@ -208,6 +208,12 @@ def obs_dtype_ones(obs: Obs, n: int) -> torch.Tensor:
     return torch.ones(n, dtype=ref.dtype, device=ref.device)
 
 
+def decay_lr(optimizer: torch.optim.Optimizer, lr: float, done: int, total: int) -> None:
+    """Linear learning-rate decay: ``lr`` at the start, ``lr / 10`` once ``done`` reaches ``total``."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr * (1 - 0.9 * min(done / total, 1.0))
+
+
 def clip_and_step(optimizer: torch.optim.Optimizer, params: list[nn.Parameter]) -> tuple[float, bool]:
     """Clip the gradient to ``MAX_GRAD_NORM`` and step; a non-finite gradient skips the step.
 

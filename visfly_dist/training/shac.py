@@ -7,7 +7,8 @@ As BPTT (:mod:`visfly_dist.training.bptt`), with a learned value closing every w
    window bootstraps with ``gamma V(terminal obs)``, a terminated one with nothing, and every agent
    still running at the end with ``gamma^(H - t0) V(obs_H)``; ``V`` is the target critic, and the
    gradient flows through its input (the state), not its weights;
-2. backward, clip, Adam step of the actor; cut the graph;
+2. backward, clip, Adam step of the actor (its learning rate decays linearly to a tenth of ``lr``);
+   cut the graph;
 3. TD(lambda) value targets over the window (``lambda = gae_lambda``) from the detached rewards and
    target-critic values; ``n_epochs`` passes of minibatches (``batch_size``) of MSE on the critic;
 4. the target critic follows: ``target = alpha target + (1 - alpha) critic`` (``TARGET_ALPHA``).
@@ -28,8 +29,8 @@ from stable_baselines3.common.logger import configure
 
 from visfly_dist.training.bptt import Progress, build_diff_env, first_observation, report_lost
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.diff_common import (Critic, DiffActor, EpisodeLog, Window, clip_and_step, detach_obs,
-                                              rollout_window, save_params)
+from visfly_dist.training.diff_common import (Critic, DiffActor, EpisodeLog, Window, clip_and_step, decay_lr,
+                                              detach_obs, rollout_window, save_params)
 from visfly_dist.training.ppo import TrainResult, write_config
 
 TARGET_ALPHA = 0.2
@@ -121,6 +122,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
                 p.timesteps += window.steps * env.num_envs
                 actor_opt.zero_grad(set_to_none=True)
                 window.loss.backward()
+                decay_lr(actor_opt, cfg.lr, p.timesteps, cfg.timesteps)
                 grad_norm, stepped = clip_and_step(actor_opt, list(actor.parameters()))
                 env.detach()
                 obs = detach_obs(window.next_obs)
