@@ -6,7 +6,7 @@ and wall time each took to first reach a given return.
 Reads each run folder's ``success_curve.csv`` (return over the last 100 episodes against env steps)
 and ``progress.csv`` (``charts/steps_per_second``, the run's average so far, gives the wall time).
 With ``--eval-curve`` it reads ``eval_curve.csv`` instead (deterministic evaluation of each
-checkpoint, written by ``eval_diff_checkpoints.py``), on a log step axis; ``--mark LABEL=STEPS:RETURN``
+checkpoint, written by ``eval_diff_checkpoints.py``), on a log step axis (linear below 1k); ``--mark LABEL=STEPS:RETURN``
 adds a reference point (e.g. PPO's final model).
 """
 
@@ -67,10 +67,12 @@ def main() -> None:
             print(f"{label}: return >= {args.target} first at {steps[hit]:,} env steps, "
                   f"{wall_seconds(run, steps[hit]):.0f} s wall; {final}")
     ax.axhline(args.target, color="grey", lw=0.8, ls="--")
-    ylabel = "deterministic eval return (32 episodes)" if args.eval_curve else "mean return (last 100 episodes)"
+    ylabel = "deterministic eval return" if args.eval_curve else "mean return (last 100 episodes)"
     ax.set(xlabel="env steps (all agents)", ylabel=ylabel, title=args.title)
     if args.eval_curve:
-        ax.set_xscale("log")
+        ax.set_xscale("symlog", linthresh=1000)
+        ax.set_xlim(left=0)
+        ax.set_xticks([0, 1000, 10_000, 100_000])
     ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}k")
     ax.grid(alpha=0.3)
     ax.legend()
