@@ -6,11 +6,13 @@ As BPTT (:mod:`visfly_dist.training.bptt`), with a learned value closing every w
    ``-1/(H N) sum (sum_t gamma^(t - t0) r_t + bootstrap)``, where an episode truncated inside the
    window bootstraps with ``gamma V(terminal obs)``, a terminated one with nothing, and every agent
    still running at the end with ``gamma^(H - t0) V(obs_H)``; ``V`` is the target critic, and the
-   gradient flows through its input (the state), not its weights;
+   gradient flows through its input (the state), not its weights, and is scaled from 0 to 1 over
+   the first ``VALUE_RAMP_WINDOWS`` windows, while the critic is still untrained;
 2. backward, clip, Adam step of the actor (its learning rate decays linearly to a tenth of ``lr``);
    cut the graph;
 3. TD(lambda) value targets over the window (``lambda = gae_lambda``) from the detached rewards and
-   target-critic values; ``n_epochs`` passes of minibatches (``batch_size``) of MSE on the critic;
+   target-critic values; ``n_epochs`` passes of minibatches (``batch_size``) of MSE on the critic,
+   in units of the running scale of its targets (:meth:`Critic.update_scale`);
 4. the target critic follows: ``target = alpha target + (1 - alpha) critic`` (``TARGET_ALPHA``).
 
 Lost agents (a worker died) end the window as in BPTT; their last step is left out of the critic's
