@@ -5,6 +5,9 @@ and wall time each took to first reach a given return.
 
 Reads each run folder's ``success_curve.csv`` (return over the last 100 episodes against env steps)
 and ``progress.csv`` (``charts/steps_per_second``, the run's average so far, gives the wall time).
+With ``--eval-curve`` it reads ``eval_curve.csv`` instead (deterministic evaluation of each
+checkpoint, written by ``eval_diff_checkpoints.py``), on a log step axis (linear below 1k); ``--mark LABEL=STEPS:RETURN``
+adds a reference point (e.g. PPO's final model).
 """
 
 from __future__ import annotations
@@ -41,15 +44,21 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", help="LABEL=RUN_FOLDER")
     parser.add_argument("--target", type=float, required=True, help="return to report steps and time to")
     parser.add_argument("--title", default="hover from state")
+    parser.add_argument("--eval-curve", action="store_true", help="plot eval_curve.csv (checkpoint evaluations)")
+    parser.add_argument("--mark", action="append", default=[], metavar="LABEL=STEPS:RETURN", help="a reference point")
     args = parser.parse_args()
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
+    for item in args.mark:
+        label, point = item.split("=", 1)
+        steps, ret = (float(x) for x in point.split(":"))
+        ax.plot([steps], [ret], marker="*", ms=12, ls="none", label=label)
     for item in args.runs:
         label, folder = item.split("=", 1)
         run = Path(folder)
-        curve = read_rows(run / "success_curve.csv")
+        curve = read_rows(run / ("eval_curve.csv" if args.eval_curve else "success_curve.csv"))
         steps = [int(r["timesteps"]) for r in curve]
         returns = [float(r["mean_return"]) for r in curve]
-        ax.plot(steps, returns, label=label)
+        ax.plot(steps, returns, label=label, marker="." if args.eval_curve else None)
         hit = next((i for i, r in enumerate(returns) if r >= args.target), None)
         final = f"final return {returns[-1]:.1f} at {steps[-1]:,} steps, {wall_seconds(run, steps[-1]):.0f} s"
         if hit is None:
@@ -58,7 +67,12 @@ def main() -> None:
             print(f"{label}: return >= {args.target} first at {steps[hit]:,} env steps, "
                   f"{wall_seconds(run, steps[hit]):.0f} s wall; {final}")
     ax.axhline(args.target, color="grey", lw=0.8, ls="--")
-    ax.set(xlabel="env steps (all agents)", ylabel="mean return (last 100 episodes)", title=args.title)
+    ylabel = "deterministic eval return" if args.eval_curve else "mean return (last 100 episodes)"
+    ax.set(xlabel="env steps (all agents)", ylabel=ylabel, title=args.title)
+    if args.eval_curve:
+        ax.set_xscale("symlog", linthresh=1000)
+        ax.set_xlim(left=0)
+        ax.set_xticks([0, 1000, 10_000, 100_000])
     ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}k")
     ax.grid(alpha=0.3)
     ax.legend()

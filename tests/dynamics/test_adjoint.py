@@ -90,3 +90,17 @@ def test_airframe_parameters_with_grad_take_the_autograd_path():
     fd = (height(torch.tensor(0.5 + eps, dtype=F64))[0] - height(torch.tensor(0.5 - eps, dtype=F64))[0]) / (2 * eps)
     assert float(grad) != 0 and float(grad) == pytest.approx(float(fd), rel=1e-5)
 
+
+
+def test_adjoint_keeps_float32_and_matches_autograd():
+    n = 8
+    quads = {flag: Quadrotor(DynamicsConfig(controller="ctbr", adjoint=flag), num_agents=n) for flag in (True, False)}
+    grads = {}
+    for flag, quad in quads.items():
+        pos, vel, quat, omega, action = (x.float().requires_grad_() for x in _start(n, seed=3))
+        state = quad.step(quad.initial_state(pos=pos + 1, vel=vel, quat=quat, omega=omega), action)
+        assert all(x.dtype == torch.float32 for x in (state.pos, state.vel, state.quat, state.omega, state.rotor))
+        grads[flag] = torch.autograd.grad(state.pos.sum() + state.quat[:, 1].sum(), (pos, quat, action))
+        assert all(g.dtype == torch.float32 for g in grads[flag])
+    for a, b in zip(grads[True], grads[False]):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-5), (a - b).abs().max()

@@ -9,8 +9,8 @@ from torch import nn
 
 from visfly_dist.dynamics import DynamicsConfig, QuadState, Quadrotor
 from visfly_dist.tasks import make_env
-from visfly_dist.training.diff_common import DiffActor, Window, rollout_window
-from visfly_dist.training.shac import lambda_returns
+from visfly_dist.training.diff_common import Critic, DiffActor, Window, rollout_window
+from visfly_dist.training.shac import lambda_returns, scale_gradient
 
 F64 = torch.float64
 TARGET = torch.tensor([0.5, -0.2, 1.5], dtype=F64)
@@ -156,6 +156,28 @@ def test_lambda_returns_cut_at_dones_and_at_the_window_end():
     g1 = 2.0 + gamma * 10.0
     g0 = 1.0 + gamma * ((1 - lam) * 6.0 + lam * g1)
     torch.testing.assert_close(lambda_returns(window, values, gamma, lam), torch.tensor([[g0], [g1], [g2]]))
+
+
+def test_critic_scale_is_the_running_mean_and_variance_of_its_targets():
+    from gymnasium import spaces
+    critic = Critic(spaces.Dict({"state": spaces.Box(-1, 1, (13,))}))
+    batches = [torch.randn(50) * 30 + 60, torch.randn(70) * 5 - 10, torch.randn(20) + 100]
+    for b in batches:
+        critic.update_scale(b)
+    every = torch.cat(batches)
+    torch.testing.assert_close(critic.mean, every.mean())
+    torch.testing.assert_close(critic.var, every.var(unbiased=False))
+    obs = {"state": torch.randn(4, 13)}
+    torch.testing.assert_close(critic(obs), critic.mean + critic.var.sqrt() * critic.normalized(obs))
+    torch.testing.assert_close(critic.normalize(critic(obs)), critic.normalized(obs))
+
+
+def test_scale_gradient_keeps_the_value_and_scales_the_gradient():
+    x = torch.tensor([1.0, -2.0], requires_grad=True)
+    y = scale_gradient(x * 3, 0.25)
+    torch.testing.assert_close(y, torch.tensor([3.0, -6.0]))
+    (grad,) = torch.autograd.grad(y.sum(), x)
+    torch.testing.assert_close(grad, torch.tensor([0.75, 0.75]))
 
 
 def test_real_hover_and_landing_rewards_carry_gradients_to_the_actions():

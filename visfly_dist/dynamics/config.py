@@ -34,7 +34,7 @@ class DynamicsConfig:
         check_actions: check every action's shape and finiteness in ``step`` (one reduction).
         compile: run the control step through ``torch.compile`` (first steps compile, slowly).
         adjoint: with gradients, run the CTBR step as one autograd node with a hand-written reverse
-            pass (``dynamics.adjoint``; about 2x faster at 100 agents). Used up to 4,096 agents,
+            pass (``dynamics.adjoint``; about 5x faster at 100 agents). Used on the CPU up to 3,072 agents,
             unless compiling or differentiating airframe parameters; False forces plain autograd.
     """
 

@@ -114,17 +114,11 @@ class CollectiveThrustBodyRate(Controller):
         return (torch.addmm(self.state_bias, self.setpoint_matrix, command),)
 
     def rotor_command(self, s: torch.Tensor, setpoint: tuple[torch.Tensor, ...]) -> torch.Tensor:
-        return self.command_and_cache(s, setpoint[0])[0]
-
-    def command_and_cache(self, s: torch.Tensor, setpoint: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        """Rotor commands (4, N) and what the reverse pass needs (see ``adjoint``): body rates, rotor
-        speeds, the unclamped thrust term and the square root."""
         _, omega, rotor = s.split((10, 3, 4))
         n = s.shape[1]
         features = torch.cat((omega, rotor, rotor * rotor, (omega[:, None] * omega[None]).reshape(9, n)))
-        thrust = torch.addmm(setpoint, self.state_matrix, features)
-        root = (thrust.clamp(self.low, self.high) + self.half_b * self.half_b).sqrt()
-        return root - self.half_b, (omega, rotor, thrust, root)
+        thrust = torch.addmm(setpoint[0], self.state_matrix, features)
+        return (thrust.clamp(self.low, self.high) + self.half_b * self.half_b).sqrt() - self.half_b
 
     def hover_action(self) -> list[float]:
         return [2 * GRAVITY / self.max_collective - 1, 0.0, 0.0, 0.0]

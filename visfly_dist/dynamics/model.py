@@ -190,7 +190,8 @@ class RigidBodyModel:
         """ds/dt (17, N) of the flat state ``s`` with rotor speed commands (4, N) held.
 
         Four small structured matmuls: cheapest in FLOPs (large batches, no grad, compiled).
-        ``derivative_and_cache`` computes the same with one dense matmul (fewer ops: small batches).
+        The adjoint (``dynamics.adjoint``) computes the same with one dense matmul of the dynamics
+        matrix (fewer ops: small batches).
         """
         _, vel, quat, omega, rotor = unpack(s)
         wrench = self.mix @ self.thrust(rotor)                     # collective acc; angular acc
@@ -202,25 +203,6 @@ class RigidBodyModel:
         quat_dot = self.quat_rate @ (quat[:, None] * omega[None]).reshape(12, n)
         rotor_dot = (rotor_cmd - rotor) * self.inv_motor_tau
         return torch.cat((vel, accel, quat_dot, omega_dot, rotor_dot))
-
-    def derivative_and_cache(self, s: torch.Tensor, rotor_cmd: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        """``derivative`` through the fused dynamics matrix, and the intermediates its reverse pass
-        needs (see ``adjoint``): ``x = [quat; omega]``, rotor speeds, rotation (3, 3, N),
-        air-relative velocity, body velocity and body force (acceleration)."""
-        n = s.shape[1]
-        _, vel, x, rotor = s.split((3, 3, 7, 4))
-        features = torch.cat((rotor, rotor * rotor, (x[:, None] * x[None]).reshape(49, n)))
-        collective, omega_dot, rot, quat_dot = torch.addmm(self.dynamics_bias, self.dynamics_matrix,
-                                                           features).split((1, 3, 9, 4))
-        rot = rot.reshape(3, 3, n)
-        rel = vel if self.wind is None else vel - self.wind
-        vel_body = (rot * rel[:, None]).sum(0)                      # R^T v
-        drag = vel_body * torch.addcmul(self.drag_linear, self.drag_quadratic, vel_body.abs())
-        force_body = torch.addcmul(drag, self.unit_z, collective)
-        accel = (rot * force_body[None]).sum(1) + self.gravity      # R f_b + g
-        rotor_dot = (rotor_cmd - rotor) * self.inv_motor_tau
-        out = torch.cat((vel, accel, quat_dot, omega_dot, rotor_dot))
-        return out, (x, rotor, rot, rel, vel_body, force_body)
 
 
 def euler_step(model: RigidBodyModel, s: torch.Tensor, rotor_cmd: torch.Tensor, h: float) -> torch.Tensor:

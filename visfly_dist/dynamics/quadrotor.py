@@ -16,7 +16,7 @@ from visfly_dist.errors import ConfigError
 
 Tensors = tuple[torch.Tensor, ...]
 RECOMPILE_LIMIT = 64
-ADJOINT_MAX_AGENTS = 4096
+ADJOINT_MAX_AGENTS = 3072
 
 
 class Quadrotor:
@@ -38,8 +38,8 @@ class Quadrotor:
     steps the batch. Each op here lasts microseconds; with a second thread MKL's pool makes small
     matmuls take milliseconds whenever the other core is busy. ``config.compile`` fuses the step
     (about 5x faster at 1,000 agents after a compile of a minute or so). With gradients, CTBR
-    steps are one autograd node with a hand-written reverse pass (``dynamics.adjoint``, on by
-    default: ``config.adjoint``), unless airframe parameters require grad.
+    steps on the CPU are one autograd node with a hand-written reverse pass (``dynamics.adjoint``,
+    on by default: ``config.adjoint``), unless airframe parameters require grad.
 
     Args:
         config: simulation and controller settings.
@@ -78,11 +78,10 @@ class Quadrotor:
                                           config.position_origin)
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
         self._adjoint: CtbrStep | None = None
-        # Compiled, autograd's own graph of the step is faster than the adjoint's many saved
-        # tensors (measured: about 2-4x at 100-1,000 agents), so the adjoint is eager only; and
-        # past a few thousand agents its dense matmuls cost more than autograd's bookkeeping saves
-        # (measured: 0.8x at 10,000, 1.6x at 1,000, 1.8-2x at 100).
-        if config.adjoint and config.controller == "ctbr" and not config.compile \
+        # The adjoint runs on NumPy views of CPU tensors. Past about 3,000 agents its dense matmuls
+        # cost more than autograd's bookkeeping saves (measured with grad: 0.75x autograd at 4,096,
+        # 1.1x at 3,000, 2-3x at 1,000, 5x at 100); compiled, autograd's own graph is used.
+        if config.adjoint and config.controller == "ctbr" and not config.compile and self.device.type == "cpu" \
                 and num_agents <= ADJOINT_MAX_AGENTS and not _any_requires_grad(self.model, self.controller):
             self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
                                      config.integrator == "rk4", config.ground)
@@ -179,8 +178,7 @@ class Quadrotor:
     def _advance_adjoint(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
                          rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
         """The control step with gradients, as one autograd node (``dynamics.adjoint``)."""
-        s, action = self._pack(pos, vel, quat, omega, rotor, action)
-        return self._unpack(*CtbrStepFunction.apply(s, action.contiguous(), self._adjoint))
+        return CtbrStepFunction.apply(pos, vel, quat, omega, rotor, action.to(self.dtype), self._adjoint)
 
     def _pack(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
               rotor: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

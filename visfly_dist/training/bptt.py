@@ -7,7 +7,8 @@ The actor is deterministic (``tanh`` of an MLP on the VisFly extractor's feature
 2. loss ``= -1/(H N) sum_agents sum_t gamma^(t - t0) r_t``, the discount restarting at 1 when an
    agent's episode ends (``t0`` its start; a reset agent's state is replaced by ``torch.where``,
    which cuts its gradient);
-3. backward, clip the gradient norm to ``MAX_GRAD_NORM``, Adam step;
+3. backward, clip the gradient norm to ``MAX_GRAD_NORM``, Adam step (the learning rate decays
+   linearly to a tenth of ``lr`` over the run);
 4. cut the graph (``env.detach()``) and go on from where the agents are.
 
 A worker dying mid-window: its agents come back ``lost`` (the env truncates and resets them); the
@@ -32,7 +33,7 @@ from stable_baselines3.common.logger import configure
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.tasks import make_env
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.diff_common import (DiffActor, EpisodeLog, clip_and_step, detach_obs, load_params,
+from visfly_dist.training.diff_common import (DiffActor, EpisodeLog, clip_and_step, decay_lr, detach_obs, load_params,
                                               rollout_window, save_params)
 from visfly_dist.training.ppo import TrainResult, env_kwargs, write_config
 
@@ -95,6 +96,7 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
                 p.timesteps += window.steps * env.num_envs
                 optimizer.zero_grad(set_to_none=True)
                 window.loss.backward()
+                decay_lr(optimizer, cfg.lr, p.timesteps, cfg.timesteps)
                 grad_norm, stepped = clip_and_step(optimizer, list(actor.parameters()))
                 env.detach()
                 obs = detach_obs(window.next_obs)

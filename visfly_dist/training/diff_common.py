@@ -77,15 +77,42 @@ class DiffActor(nn.Module):
 
 
 class Critic(nn.Module):
-    """State value ``V(obs)``: extractor, then an MLP to one output; returns ``(N,)``."""
+    """State value ``V(obs) = mean + std * head(features(obs))``; returns ``(N,)``.
+
+    The network predicts values normalised by the running mean and standard deviation of the
+    targets it was fitted to (:meth:`update_scale`): returns of tens reach the output at once,
+    where an unnormalised head, moved by about ``lr`` per Adam step, needs thousands of steps.
+    """
 
     def __init__(self, observation_space: spaces.Dict, backbone: str = "visfly-cnn") -> None:
         super().__init__()
         self.extractor = VisflyExtractor(observation_space, backbone)
         self.head = head(self.extractor.features_dim, 1)
+        self.register_buffer("mean", torch.zeros(()))
+        self.register_buffer("var", torch.ones(()))
+        self.register_buffer("count", torch.zeros(()))
+
+    def normalized(self, obs: Obs) -> torch.Tensor:
+        """``(N,)`` the head's output: the value in units of the target scale."""
+        return self.head(self.extractor(obs)).squeeze(-1)
 
     def forward(self, obs: Obs) -> torch.Tensor:
-        return self.head(self.extractor(obs)).squeeze(-1)
+        return self.mean + self.var.sqrt() * self.normalized(obs)
+
+    def normalize(self, values: torch.Tensor) -> torch.Tensor:
+        """``values`` in the head's units."""
+        return (values - self.mean) / self.var.sqrt()
+
+    @torch.no_grad()
+    def update_scale(self, targets: torch.Tensor) -> None:
+        """Fold a batch of value targets into the running mean and variance (parallel Welford)."""
+        n, mean, var = targets.numel(), targets.mean(), targets.var(unbiased=False)
+        total = self.count + n
+        delta = mean - self.mean
+        self.var.copy_(((self.var * self.count + var * n + delta.square() * self.count * n / total) / total)
+                       .clamp_min(1e-4))
+        self.mean.add_(delta * n / total)
+        self.count.copy_(total)
 
 
 @dataclass
@@ -179,6 +206,12 @@ def obs_dtype_ones(obs: Obs, n: int) -> torch.Tensor:
     if ref is None:
         return torch.ones(n)
     return torch.ones(n, dtype=ref.dtype, device=ref.device)
+
+
+def decay_lr(optimizer: torch.optim.Optimizer, lr: float, done: int, total: int) -> None:
+    """Linear learning-rate decay: ``lr`` at the start, ``lr / 10`` once ``done`` reaches ``total``."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr * (1 - 0.9 * min(done / total, 1.0))
 
 
 def clip_and_step(optimizer: torch.optim.Optimizer, params: list[nn.Parameter]) -> tuple[float, bool]:

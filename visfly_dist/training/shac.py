@@ -6,10 +6,13 @@ As BPTT (:mod:`visfly_dist.training.bptt`), with a learned value closing every w
    ``-1/(H N) sum (sum_t gamma^(t - t0) r_t + bootstrap)``, where an episode truncated inside the
    window bootstraps with ``gamma V(terminal obs)``, a terminated one with nothing, and every agent
    still running at the end with ``gamma^(H - t0) V(obs_H)``; ``V`` is the target critic, and the
-   gradient flows through its input (the state), not its weights;
-2. backward, clip, Adam step of the actor; cut the graph;
+   gradient flows through its input (the state), not its weights, and is scaled from 0 to 1 over
+   the first ``VALUE_RAMP_WINDOWS`` windows, while the critic is still untrained;
+2. backward, clip, Adam step of the actor (its learning rate decays linearly to a tenth of ``lr``);
+   cut the graph;
 3. TD(lambda) value targets over the window (``lambda = gae_lambda``) from the detached rewards and
-   target-critic values; ``n_epochs`` passes of minibatches (``batch_size``) of MSE on the critic;
+   target-critic values; ``n_epochs`` passes of minibatches (``batch_size``) of MSE on the critic,
+   in units of the running scale of its targets (:meth:`Critic.update_scale`);
 4. the target critic follows: ``target = alpha target + (1 - alpha) critic`` (``TARGET_ALPHA``).
 
 Lost agents (a worker died) end the window as in BPTT; their last step is left out of the critic's
@@ -28,12 +31,21 @@ from stable_baselines3.common.logger import configure
 
 from visfly_dist.training.bptt import Progress, build_diff_env, first_observation, report_lost
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.diff_common import (Critic, DiffActor, EpisodeLog, Window, clip_and_step, detach_obs,
-                                              rollout_window, save_params)
+from visfly_dist.training.diff_common import (Critic, DiffActor, EpisodeLog, Window, clip_and_step, decay_lr,
+                                              detach_obs, rollout_window, save_params)
 from visfly_dist.training.ppo import TrainResult, write_config
 
 TARGET_ALPHA = 0.2
 """Share of the old target critic kept at each update (SHAC's ``target_critic_alpha``)."""
+
+VALUE_RAMP_WINDOWS = 50
+"""The actor's gradient through the critic's value grows from 0 to full over this many windows,
+while the critic learns (its value in the loss, and in the critic's targets, is always whole)."""
+
+
+def scale_gradient(x: torch.Tensor, weight: float) -> torch.Tensor:
+    """``x`` whose gradient is scaled by ``weight`` (its value unchanged)."""
+    return x if weight == 1.0 else weight * x + (1 - weight) * x.detach()
 
 
 def lambda_returns(window: Window, values: torch.Tensor, gamma: float, lam: float) -> torch.Tensor:
@@ -61,7 +73,8 @@ def lambda_returns(window: Window, values: torch.Tensor, gamma: float, lam: floa
 
 def fit_critic(critic: Critic, optimizer: torch.optim.Optimizer, obs: dict[str, torch.Tensor], targets: torch.Tensor,
                epochs: int, batch_size: int, generator: torch.Generator) -> float:
-    """``epochs`` passes of shuffled minibatches of MSE towards ``targets``; the last pass's mean loss."""
+    """``epochs`` passes of shuffled minibatches of MSE towards ``targets`` (in the critic's normalised
+    units, see :meth:`Critic.normalize`); the last pass's mean loss."""
     n = len(targets)
     loss_sum = 0.0
     for _ in range(epochs):
@@ -69,7 +82,7 @@ def fit_critic(critic: Critic, optimizer: torch.optim.Optimizer, obs: dict[str, 
         loss_sum, batches = 0.0, 0
         for start in range(0, n, batch_size):
             idx = order[start:start + batch_size]
-            loss = (critic({k: v[idx] for k, v in obs.items()}) - targets[idx]).square().mean()
+            loss = (critic.normalized({k: v[idx] for k, v in obs.items()}) - targets[idx]).square().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             clip_and_step(optimizer, list(critic.parameters()))
@@ -105,10 +118,13 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
         try:
             while p.timesteps < cfg.timesteps:
                 # Actor: the window's loss, through the dynamics and the target critic's input.
-                window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma, value=target)
+                weight = min(1.0, p.windows / VALUE_RAMP_WINDOWS)
+                window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma,
+                                        value=lambda o: scale_gradient(target(o), weight))
                 p.timesteps += window.steps * env.num_envs
                 actor_opt.zero_grad(set_to_none=True)
                 window.loss.backward()
+                decay_lr(actor_opt, cfg.lr, p.timesteps, cfg.timesteps)
                 grad_norm, stepped = clip_and_step(actor_opt, list(actor.parameters()))
                 env.detach()
                 obs = detach_obs(window.next_obs)
@@ -121,11 +137,15 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
                     values = target(stacked).reshape(window.steps, -1)
                     targets = lambda_returns(window, values, cfg.gamma, cfg.gae_lambda)
                 keep = window.valid.flatten()
+                critic.update_scale(targets.flatten()[keep])
                 critic_loss = fit_critic(critic, critic_opt, {k: v[keep] for k, v in stacked.items()},
-                                         targets.flatten()[keep], cfg.n_epochs, cfg.batch_size, shuffle)
+                                         critic.normalize(targets.flatten()[keep]), cfg.n_epochs, cfg.batch_size,
+                                         shuffle)
                 with torch.no_grad():
                     for t_param, param in zip(target.parameters(), critic.parameters()):
                         t_param.lerp_(param, 1 - TARGET_ALPHA)
+                    for t_buf, buf in zip(target.buffers(), critic.buffers()):
+                        t_buf.copy_(buf)
                 p.windows += 1
 
                 log.add(window.episodes)
