@@ -17,6 +17,10 @@ from visfly_dist.errors import ConfigError
 Tensors = tuple[torch.Tensor, ...]
 RECOMPILE_LIMIT = 64
 ADJOINT_MAX_AGENTS = 3072
+NUMPY_STEP_MAX_AGENTS = 2048
+"""Up to this many agents, steps without gradients run the adjoint's NumPy forward too: per-op
+dispatch, not arithmetic, is their cost (no grad, one thread: 0.65 against 2.4 ms a step at 16
+agents, 1.2 against 3.0 at 100, 2.7 against 3.6 at 1,000; slower than torch at 3,000)."""
 
 
 class Quadrotor:
@@ -39,7 +43,8 @@ class Quadrotor:
     matmuls take milliseconds whenever the other core is busy. ``config.compile`` fuses the step
     (about 5x faster at 1,000 agents after a compile of a minute or so). With gradients, CTBR
     steps on the CPU are one autograd node with a hand-written reverse pass (``dynamics.adjoint``,
-    on by default: ``config.adjoint``), unless airframe parameters require grad.
+    on by default: ``config.adjoint``), unless airframe parameters require grad; without gradients,
+    its NumPy forward also runs CTBR steps of up to ``NUMPY_STEP_MAX_AGENTS`` agents.
 
     Args:
         config: simulation and controller settings.
@@ -151,7 +156,8 @@ class Quadrotor:
             action, queue = queue[:, 0], torch.cat((queue[:, 1:], action[:, None]), dim=1)
         inputs = (state.pos, state.vel, state.quat, state.omega, state.rotor, action)
         advance = self._advance
-        if self._adjoint is not None and torch.is_grad_enabled() and any(x.requires_grad for x in inputs):
+        if self._adjoint is not None and (self.num_agents <= NUMPY_STEP_MAX_AGENTS
+                                          or torch.is_grad_enabled() and any(x.requires_grad for x in inputs)):
             advance = self._advance_adjoint
         pos, vel, quat, omega, rotor, contact = advance(*inputs)
         return QuadState(pos=pos, vel=vel, quat=quat, omega=omega, rotor=rotor,
