@@ -1,0 +1,318 @@
+"""Paths of moving obstacles: a circle, a closed polygon, a periodic cubic spline (pure numpy).
+
+Every path is closed and travelled at a constant ``speed`` (m/s) by arc length, so an obstacle's
+position at time ``t`` is the point at arc length ``(speed * t) mod length`` from the path's start,
+and it comes back to it every ``period = length / speed`` seconds. :meth:`Motion.state` evaluates
+position, velocity and acceleration for an array of times at once; it is a pure function of ``t``
+(no state), so a worker and a client computing it from the same dict get the same answer.
+
+- ``circle``: ``centre``, ``radius``, ``speed``, ``axis`` (the circle's normal, default +z; the
+  obstacle turns counter-clockwise about it) and ``phase`` (the start angle, rad, from the first
+  in-plane axis: +x for the default axis). Acceleration is centripetal, ``speed**2 / radius``.
+- ``polygon``: ``vertices`` (at least 2, consecutive ones distinct), ``speed``; closed (the last
+  vertex joins the first). Acceleration is 0 along the edges (the turn at a corner is instant).
+- ``spline``: ``points`` (at least 3, consecutive ones distinct), ``speed``: the periodic cubic
+  spline through the points (chord-length knots, C2 everywhere, the seam included), re-parameterised
+  by arc length; it passes through ``points[0]`` at ``t = 0`` and through every point in order.
+
+Dicts (``to_dict``/:func:`motion_from_dict`) hold plain lists and floats with a ``"type"`` key;
+:func:`motion_from_dict` raises :class:`~visfly_dist.errors.ConfigError` naming the bad field.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from visfly_dist.errors import ConfigError
+
+MAX_COORD = 1e4
+"""Every coordinate and length lies within +-1e4 m."""
+MAX_SPEED = 1e3
+MAX_POINTS = 256
+MIN_EDGE = 1e-6
+"""Consecutive vertices (or spline points) must be at least this far apart, m."""
+_GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(8)
+_ARC_SUBDIVISIONS = 16     # arc-length table entries per spline segment
+_NEWTON_STEPS = 4
+
+
+@dataclass(frozen=True)
+class MotionState:
+    """Kinematics along a path for times of shape ``S``: arrays ``S + (3,)``, world frame.
+
+    Attributes:
+        position: m. velocity: m/s (tangent, norm ``speed``). acceleration: m/s^2.
+    """
+
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+
+
+class Motion(abc.ABC):
+    """A closed path travelled at constant speed (see the module docstring)."""
+
+    kind: str
+    speed: float
+
+    @property
+    @abc.abstractmethod
+    def length(self) -> float:
+        """Length of the closed path, m."""
+
+    @property
+    def period(self) -> float:
+        """Seconds per lap: ``length / speed``."""
+        return self.length / self.speed
+
+    def state(self, t: float | np.ndarray) -> MotionState:
+        """Position, velocity and acceleration at times ``t`` (s, any shape; vectorised)."""
+        t = np.asarray(t, dtype=np.float64)
+        s = np.mod(self.speed * t.reshape(-1), self.length)
+        p, v, a = self._at_arc(s)
+        shape = t.shape + (3,)
+        return MotionState(p.reshape(shape), v.reshape(shape), a.reshape(shape))
+
+    def position(self, t: float | np.ndarray) -> np.ndarray:
+        """Position at times ``t``, ``t.shape + (3,)``."""
+        return self.state(t).position
+
+    def path_points(self, spacing: float) -> np.ndarray:
+        """Points ``(m, 3)`` along the whole path at most ``spacing`` m apart (at least 8, corners included)."""
+        m = max(8, int(math.ceil(self.length / max(spacing, 1e-3))))
+        points = self._at_arc(np.linspace(0.0, self.length, m, endpoint=False))[0]
+        return np.concatenate([points, self._corners()])
+
+    def _corners(self) -> np.ndarray:
+        return np.zeros((0, 3))
+
+    @abc.abstractmethod
+    def _at_arc(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Position, velocity, acceleration ``(n, 3)`` at arc lengths ``s (n,)`` in ``[0, length)``."""
+
+    @abc.abstractmethod
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dict with ``"type"``; :func:`motion_from_dict` reads it back."""
+
+
+class Circle(Motion):
+    """A circle of ``radius`` about ``centre`` in the plane normal to ``axis``, from angle ``phase``."""
+
+    kind = "circle"
+
+    def __init__(self, centre, radius: float, speed: float, axis=(0.0, 0.0, 1.0), phase: float = 0.0) -> None:
+        self.centre = _vec3(centre, "circle.centre")
+        self.radius = _number(radius, "circle.radius", 1e-3, MAX_COORD)
+        self.speed = _number(speed, "circle.speed", 1e-6, MAX_SPEED)
+        self.axis = _vec3(axis, "circle.axis")
+        norm = float(np.linalg.norm(self.axis))
+        if norm < 1e-9:
+            raise ConfigError(f"circle.axis={self.axis.tolist()} must be a non-zero 3-vector (the circle's normal)")
+        self.phase = _number(phase, "circle.phase", -1e6, 1e6)
+        n = self.axis / norm
+        helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = helper - helper.dot(n) * n
+        self._e1 = e1 / np.linalg.norm(e1)
+        self._e2 = np.cross(n, self._e1)
+
+    @property
+    def length(self) -> float:
+        return 2.0 * math.pi * self.radius
+
+    def _at_arc(self, s):
+        theta = self.phase + s / self.radius
+        c, si = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        radial = c * self._e1 + si * self._e2
+        tangent = -si * self._e1 + c * self._e2
+        return self.centre + self.radius * radial, self.speed * tangent, -(self.speed ** 2 / self.radius) * radial
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": self.kind, "centre": self.centre.tolist(), "radius": self.radius, "speed": self.speed,
+                "axis": self.axis.tolist(), "phase": self.phase}
+
+
+class Polygon(Motion):
+    """The closed polygon through ``vertices`` (last joined to first), from ``vertices[0]``."""
+
+    kind = "polygon"
+
+    def __init__(self, vertices, speed: float) -> None:
+        self.vertices = _points(vertices, "polygon.vertices", 2)
+        self.speed = _number(speed, "polygon.speed", 1e-6, MAX_SPEED)
+        edges = np.roll(self.vertices, -1, axis=0) - self.vertices
+        self._edge_lengths = np.linalg.norm(edges, axis=1)
+        _check_edges(self._edge_lengths, "polygon.vertices")
+        self._units = edges / self._edge_lengths[:, None]
+        self._starts = np.concatenate([[0.0], np.cumsum(self._edge_lengths)[:-1]])
+
+    @property
+    def length(self) -> float:
+        return float(self._edge_lengths.sum())
+
+    def _at_arc(self, s):
+        k = np.clip(np.searchsorted(self._starts, s, side="right") - 1, 0, len(self._starts) - 1)
+        position = self.vertices[k] + (s - self._starts[k])[:, None] * self._units[k]
+        return position, self.speed * self._units[k], np.zeros_like(position)
+
+    def _corners(self) -> np.ndarray:
+        return self.vertices
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": self.kind, "vertices": self.vertices.tolist(), "speed": self.speed}
+
+
+class Spline(Motion):
+    """The periodic cubic spline through ``points``, by arc length, from ``points[0]``."""
+
+    kind = "spline"
+
+    def __init__(self, points, speed: float) -> None:
+        self.points = _points(points, "spline.points", 3)
+        self.speed = _number(speed, "spline.speed", 1e-6, MAX_SPEED)
+        chords = np.linalg.norm(np.roll(self.points, -1, axis=0) - self.points, axis=1)
+        _check_edges(chords, "spline.points")
+        self._h = chords
+        self._knots = np.concatenate([[0.0], np.cumsum(chords)])
+        self._m = _periodic_second_derivatives(self.points, chords)
+        # arc-length table: s at _ARC_SUBDIVISIONS sub-knots per segment, by Gauss-Legendre quadrature
+        u = np.concatenate([np.linspace(a, b, _ARC_SUBDIVISIONS, endpoint=False) for a, b in
+                            zip(self._knots[:-1], self._knots[1:])] + [self._knots[-1:]])
+        pieces = self._speed_integral(u[:-1], u[1:])
+        self._table_u, self._table_s = u, np.concatenate([[0.0], np.cumsum(pieces)])
+
+    @property
+    def length(self) -> float:
+        return float(self._table_s[-1])
+
+    def _curve(self, u: np.ndarray, order: int) -> np.ndarray:
+        """The spline's ``order``-th derivative (0, 1, 2) at knot parameters ``u (n,)``, ``(n, 3)``."""
+        u = np.mod(u, self._knots[-1])
+        i = np.clip(np.searchsorted(self._knots, u, side="right") - 1, 0, len(self._h) - 1)
+        h = self._h[i][:, None]
+        a = (self._knots[i + 1][:, None] - u[:, None])
+        b = (u[:, None] - self._knots[i][:, None])
+        j = (i + 1) % len(self._h)
+        mi, mj, yi, yj = self._m[i], self._m[j], self.points[i], self.points[j]
+        if order == 0:
+            return mi * a ** 3 / (6 * h) + mj * b ** 3 / (6 * h) + (yi / h - mi * h / 6) * a + (yj / h - mj * h / 6) * b
+        if order == 1:
+            return -mi * a ** 2 / (2 * h) + mj * b ** 2 / (2 * h) - (yi / h - mi * h / 6) + (yj / h - mj * h / 6)
+        return mi * a / h + mj * b / h
+
+    def _speed_integral(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Arc length of the curve between parameters ``lo`` and ``hi`` (same segment), ``(n,)``."""
+        half, mid = (hi - lo) / 2, (hi + lo) / 2
+        u = (mid[:, None] + half[:, None] * _GAUSS_X[None, :]).reshape(-1)
+        speed = np.linalg.norm(self._curve(u, 1), axis=1).reshape(len(lo), -1)
+        return half * (speed @ _GAUSS_W)
+
+    def _parameter(self, s: np.ndarray) -> np.ndarray:
+        """The knot parameter at arc length ``s``: table lookup, then Newton on the exact integral."""
+        k = np.clip(np.searchsorted(self._table_s, s, side="right") - 1, 0, len(self._table_s) - 2)
+        lo_u, lo_s = self._table_u[k], self._table_s[k]
+        hi_u, hi_s = self._table_u[k + 1], self._table_s[k + 1]
+        u = lo_u + (s - lo_s) / (hi_s - lo_s) * (hi_u - lo_u)
+        for _ in range(_NEWTON_STEPS):
+            error = lo_s + self._speed_integral(lo_u, u) - s
+            u = np.clip(u - error / np.linalg.norm(self._curve(u, 1), axis=1), lo_u, hi_u)
+        return u
+
+    def _at_arc(self, s):
+        u = self._parameter(s)
+        d1, d2 = self._curve(u, 1), self._curve(u, 2)
+        norm2 = np.einsum("ij,ij->i", d1, d1)[:, None]
+        tangent = d1 / np.sqrt(norm2)
+        normal = d2 - tangent * np.einsum("ij,ij->i", tangent, d2)[:, None]
+        return self._curve(u, 0), self.speed * tangent, (self.speed ** 2) * normal / norm2
+
+    def _corners(self) -> np.ndarray:
+        return self.points
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": self.kind, "points": self.points.tolist(), "speed": self.speed}
+
+
+MOTIONS: dict[str, type[Motion]] = {"circle": Circle, "polygon": Polygon, "spline": Spline}
+_FIELDS = {"circle": ({"centre", "radius", "speed"}, {"axis", "phase"}),
+           "polygon": ({"vertices", "speed"}, set()), "spline": ({"points", "speed"}, set())}
+
+
+def motion_from_dict(data: Mapping[str, Any], what: str = "motion") -> Motion:
+    """The :class:`Motion` a dict describes (the module docstring lists the fields per type).
+
+    Raises:
+        ConfigError: not a dict, an unknown type, a missing or unknown field, or a bad value; the
+            message names the field (prefixed by ``what``).
+    """
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{what} must be a dict with a 'type' of {sorted(MOTIONS)}, got {type(data).__name__}")
+    kind = data.get("type")
+    if kind not in MOTIONS:
+        raise ConfigError(f"{what}.type={kind!r} must be one of {sorted(MOTIONS)}")
+    required, optional = _FIELDS[kind]
+    missing, unknown = sorted(required - set(data)), sorted(set(data) - required - optional - {"type"})
+    if missing or unknown:
+        raise ConfigError(f"{what} ({kind}): missing field(s) {missing}, unknown field(s) {unknown}; "
+                          f"accepted: {sorted(required | optional)}")
+    try:
+        return MOTIONS[kind](**{k: v for k, v in data.items() if k != "type"})
+    except ConfigError as exc:
+        raise ConfigError(f"{what}: {exc}") from None
+
+
+def _number(value: Any, name: str, lo: float, hi: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ConfigError(f"{name}={value!r} must be a number")
+    v = float(value)
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ConfigError(f"{name}={value!r} must be finite and in [{lo:g}, {hi:g}]")
+    return v
+
+
+def _vec3(value: Any, name: str) -> np.ndarray:
+    try:
+        v = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        v = np.full(0, np.nan)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.any(np.abs(v) > MAX_COORD):
+        raise ConfigError(f"{name}={value!r} must be 3 finite numbers within +-{MAX_COORD:g}")
+    return v
+
+
+def _points(value: Any, name: str, minimum: int) -> np.ndarray:
+    try:
+        p = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        p = np.full(0, np.nan)
+    if p.ndim != 2 or p.shape[1] != 3 or not minimum <= len(p) <= MAX_POINTS:
+        raise ConfigError(f"{name} must be a list of {minimum} to {MAX_POINTS} [x, y, z] points, got shape {p.shape}")
+    if not np.all(np.isfinite(p)) or np.any(np.abs(p) > MAX_COORD):
+        raise ConfigError(f"{name} must hold finite coordinates within +-{MAX_COORD:g}")
+    return p
+
+
+def _check_edges(lengths: np.ndarray, name: str) -> None:
+    short = np.flatnonzero(lengths < MIN_EDGE)
+    if len(short):
+        raise ConfigError(f"{name}: point {int(short[0])} and the next one (cyclically) coincide; "
+                          f"consecutive points must be at least {MIN_EDGE:g} m apart")
+
+
+def _periodic_second_derivatives(points: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Second derivatives at the knots ``(k, 3)`` of the periodic cubic spline through ``points``
+    with segment lengths ``h`` (segment ``i`` from point ``i`` to ``i + 1 mod k``)."""
+    k = len(points)
+    prev = np.roll(h, 1)                       # h_{i-1}
+    matrix = np.zeros((k, k))
+    rows = np.arange(k)
+    matrix[rows, rows] = 2.0 * (prev + h)
+    np.add.at(matrix, (rows, (rows - 1) % k), prev)
+    np.add.at(matrix, (rows, (rows + 1) % k), h)
+    slopes = (np.roll(points, -1, axis=0) - points) / h[:, None]
+    rhs = 6.0 * (slopes - np.roll(slopes, 1, axis=0))
+    return np.linalg.solve(matrix, rhs)
