@@ -26,7 +26,7 @@ import numpy as np
 from visfly_dist.errors import ConfigError
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
-LIBRARY_VERSION = 3
+LIBRARY_VERSION = 4
 DISABLE_ENV = "VISFLY_NATIVE_TRACER"
 
 _f32p = ctypes.POINTER(ctypes.c_float)
@@ -47,7 +47,7 @@ class _Batch(ctypes.Structure):
         ("vis_dist2", ctypes.c_void_p), ("radius", ctypes.c_double), ("focal", ctypes.c_double),
         ("right64", ctypes.c_void_p), ("down64", ctypes.c_void_p), ("drone", ctypes.c_void_p),
         ("rots64", ctypes.c_void_p), ("light_dir", ctypes.c_void_p), ("ambient", ctypes.c_double),
-        ("light", ctypes.c_void_p),
+        ("light", ctypes.c_void_p), ("prim_offsets", ctypes.c_void_p),
     ]
 
 
@@ -68,6 +68,14 @@ def load_library() -> tuple[ctypes.CDLL | None, str]:
         lib.vf_scene_new.argtypes = [_f32p, ctypes.c_int64]
         lib.vf_scene_free.restype = None
         lib.vf_scene_free.argtypes = [ctypes.c_void_p]
+        lib.vf_instanced_new.restype = ctypes.c_void_p
+        lib.vf_instanced_new.argtypes = [_f32p, ctypes.POINTER(ctypes.c_int64), ctypes.c_int32]
+        lib.vf_instanced_free.restype = None
+        lib.vf_instanced_free.argtypes = [ctypes.c_void_p]
+        lib.vf_instanced_move.restype = ctypes.c_int
+        lib.vf_instanced_move.argtypes = [ctypes.c_void_p, _f32p]
+        lib.vf_instanced_scene.restype = ctypes.c_void_p
+        lib.vf_instanced_scene.argtypes = [ctypes.c_void_p]
         lib.vf_trace.restype = ctypes.c_int
         lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
         lib.vf_points_new.restype = ctypes.c_void_p
@@ -122,6 +130,55 @@ class NativeScene:
         if self.handle is not None:
             self._lib.vf_scene_free(self.handle)
             self.handle = None
+
+    def __del__(self) -> None:  # last resort; renderers call close()
+        self.close()
+
+
+class NativeInstancedScene:
+    """A scene with moving parts: Embree instances over per-part BVHs, moved by translations.
+
+    Part 0 is the static geometry, parts 1.. the moving objects (local frames); each part's BVH is
+    built once, and :meth:`move` re-commits only the top-level scene over the instances. Hits report
+    the triangle index in the concatenation of the parts (``prim_offsets``), as a flat scene would.
+
+    Args:
+        triangles: ``(F, 3, 3)`` every part's triangles, part after part.
+        counts: ``(P,)`` triangles per part (a part may be empty).
+    """
+
+    def __init__(self, triangles: np.ndarray, counts: Sequence[int]) -> None:
+        self._lib = _lib()
+        self.handle: int | None = None
+        self._instanced: int | None = None
+        tris = np.ascontiguousarray(triangles, dtype=np.float32)
+        counts64 = np.ascontiguousarray(counts, dtype=np.int64)
+        if tris.ndim != 3 or tris.shape[1:] != (3, 3) or counts64.sum() != len(tris) or np.any(counts64 < 0):
+            raise ConfigError(f"triangles shape {tris.shape} must be (F, 3, 3) with F = sum(counts) = {counts64.sum()}")
+        self.parts = len(counts64)
+        self.prim_offsets = np.ascontiguousarray(np.concatenate([[0], np.cumsum(counts64)[:-1]]), dtype=np.int32)
+        handle = self._lib.vf_instanced_new(tris.ctypes.data_as(_f32p), counts64.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+                                            self.parts)
+        if not handle:
+            raise _error(self._lib, f"building the instanced scene of {self.parts} parts, {len(tris)} triangles")
+        self._instanced = handle
+        self.handle = self._lib.vf_instanced_scene(handle)
+
+    def move(self, translations: np.ndarray) -> None:
+        """Place every part: ``(P, 3)`` translations (part 0, the static one, normally at 0)."""
+        if self._instanced is None:
+            raise ConfigError("move() on a closed NativeInstancedScene")
+        t = np.ascontiguousarray(translations, dtype=np.float32)
+        if t.shape != (self.parts, 3):
+            raise ConfigError(f"translations shape {t.shape} must be ({self.parts}, 3)")
+        if self._lib.vf_instanced_move(self._instanced, t.ctypes.data_as(_f32p)) != 0:
+            raise _error(self._lib, "moving the instances")
+
+    def close(self) -> None:
+        """Free the BVHs; idempotent."""
+        if self._instanced is not None:
+            self._lib.vf_instanced_free(self._instanced)
+            self._instanced = self.handle = None
 
     def __del__(self) -> None:  # last resort; renderers call close()
         self.close()
@@ -221,9 +278,11 @@ class Batch:
         drones: the other drones to draw, or None.
         drone: ``(n, H, W)`` int32 output: the drone seen (``-1``: none), or None.
         light: ``(n, H, W)`` float64 output: brightness of the drone seen, or None (needs ``drones.rots``).
+
+    An instanced scene's batch also passes its ``prim_offsets`` (taken from the scene).
     """
 
-    scene: NativeScene
+    scene: "NativeScene | NativeInstancedScene"
     right: np.ndarray
     down: np.ndarray
     near: float
@@ -261,6 +320,8 @@ class Batch:
         out = _Batch(self.scene.handle, n, w, h, float(self.near), float(self.far), ptr(self.right), ptr(self.down),
                      ptr(self.origins), ptr(self.rots), ptr(self.depth), ptr(self.prim), ptr(self.uv),
                      ptr(self.seg_table), ptr(self.seg))
+        offsets = getattr(self.scene, "prim_offsets", None)
+        out.prim_offsets = ptr(offsets)
         if d is not None:
             out.vis_offsets, out.vis_drone, out.vis_centre, out.vis_dist2 = (
                 ptr(d.offsets), ptr(d.index), ptr(d.centres), ptr(d.dist2))

@@ -389,13 +389,14 @@ class SceneWorker:
             if any(scene.cameras != cameras for scene in loaded):
                 raise ProtocolError("the scenes of one step request must carry the same cameras")
             with self._timer.time("render", timings):
-                parts = render_scenes([(scene.renderer, item.poses, scene.multi_agent)
+                parts = render_scenes([(scene.renderer, item.poses, scene.multi_agent, item.time)
                                        for item, scene in zip(request.scenes, loaded)])
                 reply["images"] = {c.name: _concat([p[c.name] for p in parts], (0, *c.shape), c.dtype)
                                    for c in cameras}
         if request.query:
             with self._timer.time("query", timings):
-                parts = [_query(scene, item.poses, request.search_radius) for item, scene in zip(request.scenes, loaded)]
+                parts = [_query(scene, item.poses, request.search_radius, item.time)
+                         for item, scene in zip(request.scenes, loaded)]
                 for key, shape, dtype in QUERY_FIELDS:
                     reply[key] = _concat([p[key] for p in parts], shape, dtype)
         return reply
@@ -436,10 +437,10 @@ def _concat(parts: list[np.ndarray], empty_shape: tuple[int, ...], dtype: Any) -
     return np.concatenate(parts) if parts else np.zeros(empty_shape, dtype=dtype)
 
 
-def _query(scene: LoadedScene, poses: np.ndarray, search_radius: float) -> dict[str, np.ndarray]:
+def _query(scene: LoadedScene, poses: np.ndarray, search_radius: float, time: float) -> dict[str, np.ndarray]:
     if len(poses) == 0:
         return {"collision": np.zeros(0, bool), "inside": np.zeros(0, bool),
                 "nearest": np.zeros((0, 3), np.float32), "distance": np.zeros(0, np.float32)}
-    q = scene.queries.query(poses[:, :3], search_radius)
+    q = scene.queries.query(poses[:, :3], search_radius, time)
     return {"collision": np.asarray(q.collision, dtype=bool), "inside": np.asarray(q.inside, dtype=bool),
             "nearest": np.asarray(q.nearest, dtype=np.float32), "distance": np.asarray(q.distance, dtype=np.float32)}

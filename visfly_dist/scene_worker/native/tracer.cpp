@@ -1,6 +1,12 @@
 // visfly-dist native packet tracer: primary rays through pixel centres with Embree 3 16-wide packets.
 //
 // One Embree scene per visfly scene (a triangle soup, robust flag, BVH built once by vf_scene_new).
+// A scene with moving obstacles is instanced instead (vf_instanced_new): a top-level scene holding
+// the static triangles as instance 0 and each moving object as instance k (its triangles in its
+// local frame, each part its own BVH built once). vf_instanced_move sets the instances'
+// translations and commits only the top-level scene (a BVH over a few boxes), never the triangles.
+// A hit's triangle index is then prim_offsets[instID] + primID, the index in the concatenation of
+// the parts, so segmentation and shading read the same tables as for a flat scene.
 // vf_trace renders a list of batches (one batch = one camera of n drones of one scene) on its own
 // threads: frames (batch, drone) are handed out through one shared counter, so the threads spread
 // over every camera of every scene of the call. Each frame is traced in 4x4 pixel tiles with
@@ -25,6 +31,7 @@
 #include <cstring>
 #include <exception>
 #include <mutex>
+#include <stdexcept>
 #include <string>
 #include <system_error>
 #include <thread>
@@ -93,11 +100,91 @@ struct vf_batch {
   const double* light_dir;     // (3,) unit vector towards the light; with light
   double ambient;              // share of the colour lit regardless of the light; with light
   double* light;               // (n, height, width) brightness of the drone seen; optional
+  const int32_t* prim_offsets; // (instances,) first triangle of each instance; null: a flat scene
+};
+
+struct vf_instanced {
+  RTCScene top = nullptr;
+  std::vector<RTCScene> parts;        // one BVH per part (null for an empty part)
+  std::vector<RTCGeometry> instances; // the instance geometry of each part in `top` (id = part index)
 };
 
 const char* vf_last_error(void) { return last_error.c_str(); }
 
-int vf_version(void) { return 3; }
+int vf_version(void) { return 4; }
+
+void* vf_scene_new(const float* triangles, int64_t count);
+
+void vf_scene_free(void* scene);
+
+void vf_instanced_free(void* handle) {
+  auto* inst = static_cast<vf_instanced*>(handle);
+  if (inst == nullptr) return;
+  for (RTCGeometry g : inst->instances) {
+    if (g != nullptr) rtcReleaseGeometry(g);
+  }
+  for (RTCScene s : inst->parts) vf_scene_free(s);
+  if (inst->top != nullptr) rtcReleaseScene(inst->top);
+  delete inst;
+}
+
+// An instanced scene of `parts` triangle soups laid end to end in `triangles` (part k has
+// counts[k] triangles, possibly 0), every instance at the identity. Returns null on failure.
+void* vf_instanced_new(const float* triangles, const int64_t* counts, int32_t parts) {
+  vf_instanced* inst = nullptr;
+  try {
+    RTCDevice dev = visfly::shared_device();
+    if (dev == nullptr) return nullptr;
+    inst = new vf_instanced();
+    inst->top = rtcNewScene(dev);
+    if (inst->top == nullptr) throw std::runtime_error("rtcNewScene failed");
+    rtcSetSceneFlags(inst->top, static_cast<RTCSceneFlags>(RTC_SCENE_FLAG_ROBUST | RTC_SCENE_FLAG_DYNAMIC));
+    rtcSetSceneBuildQuality(inst->top, RTC_BUILD_QUALITY_LOW);
+    const float identity[12] = {1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0};  // column-major 3x4
+    int64_t start = 0;
+    for (int32_t k = 0; k < parts; ++k) {
+      RTCScene part = counts[k] > 0 ? static_cast<RTCScene>(vf_scene_new(triangles + 9 * start, counts[k])) : nullptr;
+      if (counts[k] > 0 && part == nullptr) throw std::runtime_error(last_error);
+      start += counts[k];
+      inst->parts.push_back(part);
+      RTCGeometry g = nullptr;
+      if (part != nullptr) {
+        g = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_INSTANCE);
+        rtcSetGeometryInstancedScene(g, part);
+        rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, identity);
+        rtcCommitGeometry(g);
+        rtcAttachGeometryByID(inst->top, g, static_cast<unsigned>(k));
+      }
+      inst->instances.push_back(g);
+    }
+    rtcCommitScene(inst->top);
+    if (rtcGetDeviceError(dev) != RTC_ERROR_NONE) throw std::runtime_error(last_error);
+    return inst;
+  } catch (const std::exception& e) {
+    last_error = std::string("instanced scene: ") + e.what();
+    vf_instanced_free(inst);
+    return nullptr;
+  }
+}
+
+// Translate instance k by translations[3k..3k+2] (every part, the static one included) and commit
+// the top-level scene. Returns 0, or non-zero with vf_last_error() set.
+int vf_instanced_move(void* handle, const float* translations) {
+  auto* inst = static_cast<vf_instanced*>(handle);
+  for (size_t k = 0; k < inst->instances.size(); ++k) {
+    RTCGeometry g = inst->instances[k];
+    if (g == nullptr) continue;
+    const float* t = translations + 3 * k;
+    const float xfm[12] = {1, 0, 0, 0, 1, 0, 0, 0, 1, t[0], t[1], t[2]};
+    rtcSetGeometryTransform(g, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR, xfm);
+    rtcCommitGeometry(g);
+  }
+  rtcCommitScene(inst->top);
+  return rtcGetDeviceError(rtcGetSceneDevice(inst->top)) == RTC_ERROR_NONE ? 0 : 1;
+}
+
+// The top-level scene of an instanced scene (what a batch's `scene` points to).
+void* vf_instanced_scene(void* handle) { return static_cast<vf_instanced*>(handle)->top; }
 
 // Build a robust Embree scene from a triangle soup (triangles, 3 vertices, xyz) and its BVH.
 void* vf_scene_new(const float* triangles, int64_t count) {
@@ -190,7 +277,8 @@ void trace_frame(const vf_batch& b, int32_t agent) {
         if (!valid[k]) continue;
         const size_t p = frame + static_cast<size_t>(ti + k / 4) * w + (tj + k % 4);
         const bool hit = rh.hit.geomID[k] != RTC_INVALID_GEOMETRY_ID;
-        const int32_t prim = hit ? static_cast<int32_t>(rh.hit.primID[k]) : -1;
+        int32_t prim = hit ? static_cast<int32_t>(rh.hit.primID[k]) : -1;
+        if (hit && b.prim_offsets != nullptr) prim += b.prim_offsets[rh.hit.instID[0][k]];
         b.depth[p] = hit ? nearf + rh.ray.tfar[k] : farf;
         if (b.prim != nullptr) b.prim[p] = prim;
         if (b.uv != nullptr) {
