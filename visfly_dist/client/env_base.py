@@ -288,7 +288,7 @@ class DroneEnvBase(VecEnv):
         self.sim_time += self.config.ctrl_dt
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
-                                        time=self.sim_time)
+                                        sim_time=self.sim_time)
         return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0)
 
     def _finish(self, flight: _InFlight) -> StepResult:
@@ -440,7 +440,7 @@ class DroneEnvBase(VecEnv):
         self.reset_agents_hook(idx)
         missing = idx_np[~self._prepared[idx_np]]
         if len(missing):  # first reset, a swapped scene, or a failed worker: render now (a second round trip)
-            obs = self.aggregator.observe(self._start_poses(missing), agents=missing, time=self.sim_time)
+            obs = self.aggregator.observe(self._start_poses(missing), agents=missing, sim_time=self.sim_time)
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
         self.frame = rows if observation is None else self.frame.scatter(idx, rows)
