@@ -4,6 +4,8 @@ env's simulation time, and the observation of the K nearest obstacles."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -80,3 +82,16 @@ def test_config_names_bad_moving_settings():
     with pytest.raises(ConfigError, match=r"moving_nearest=0 must be an int in \[1, 32\]"):
         MovingNavigationConfig(moving_nearest=0).validate()
     assert MovingNavigationConfig(moving=3).scenes == ("gen:garage-stones?density=0.15&moving=3&moving_speed=1.0",)
+
+
+def test_tiny_training_run(tmp_path):
+    """A smoke test only: PPO trains a few hundred steps on the task through the CLI."""
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "visfly_dist.cli", "train", "navigation_moving", "--timesteps", "256",
+                           "--checkpoint-every", "0", "--out", str(out), "--num-envs", "4", "--workers", "1",
+                           "--n-steps", "32", "--batch-size", "64", "--set", "max_episode_steps=20",
+                           "--set", "moving=3",
+                           "--set", "cameras=[{\"name\": \"depth\", \"width\": 32, \"height\": 32, \"offset\": [0.2, 0, 0]}]"],
+                          capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "final.zip").is_file() and "done: 256 steps" in proc.stdout
