@@ -89,10 +89,17 @@ def test_generated_moving_stones_match_the_static_scene(tracer):
         pytest.skip("native tracer not built")
     scene = resolve_source(GEN_SOURCE, [os.getcwd()])
     t = 6.4
-    poses = _poses_at(scene, t)
+    rng = np.random.default_rng(5)   # above each stone, and anywhere with any heading (tiles culled or not)
+    yaw, pitch = rng.uniform(-np.pi, np.pi, 60), rng.uniform(-0.6, 0.6, 60)
+    quats = np.stack([np.cos(yaw / 2) * np.cos(pitch / 2), -np.sin(yaw / 2) * np.sin(pitch / 2),
+                      np.cos(yaw / 2) * np.sin(pitch / 2), np.sin(yaw / 2) * np.cos(pitch / 2)], axis=1)
+    anywhere = np.concatenate([rng.uniform(scene.bounds[0] + 0.3, scene.bounds[1] - 0.3, (60, 3)), quats], axis=1)
+    poses = np.concatenate([_poses_at(scene, t), anywhere])
     with RaycastRenderer(scene, CAMERAS, tracer=tracer) as moving, RaycastRenderer(scene.at_time(t), CAMERAS, tracer=tracer) as static:
         got, want = moving.render(poses, time=t), static.render(poses)
-    np.testing.assert_allclose(got["depth"], want["depth"], rtol=0, atol=TOLERANCE_M)
+    # grazing hits far away may differ by a few float32 steps of the depth (1.9e-6 m at 16 m)
+    np.testing.assert_allclose(got["depth"], want["depth"], rtol=2e-6, atol=TOLERANCE_M)
+    assert (np.abs(got["depth"] - want["depth"]) <= TOLERANCE_M).mean() > 0.9999
     assert (got["seg"] == want["seg"]).mean() > 0.999   # a pixel centre on an edge may round either way
     assert np.isin(got["seg"], [o.object_id for o in scene.moving_objects]).any()
 

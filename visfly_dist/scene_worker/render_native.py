@@ -47,7 +47,9 @@ class _Batch(ctypes.Structure):
         ("vis_dist2", ctypes.c_void_p), ("radius", ctypes.c_double), ("focal", ctypes.c_double),
         ("right64", ctypes.c_void_p), ("down64", ctypes.c_void_p), ("drone", ctypes.c_void_p),
         ("rots64", ctypes.c_void_p), ("light_dir", ctypes.c_void_p), ("ambient", ctypes.c_double),
-        ("light", ctypes.c_void_p), ("prim_offsets", ctypes.c_void_p),
+        ("light", ctypes.c_void_p), ("prim_offsets", ctypes.c_void_p), ("moving", ctypes.c_void_p),
+        ("moving_count", ctypes.c_int32), ("moving_centres", ctypes.c_void_p), ("moving_radii", ctypes.c_void_p),
+        ("moving_focal", ctypes.c_double),
     ]
 
 
@@ -76,6 +78,8 @@ def load_library() -> tuple[ctypes.CDLL | None, str]:
         lib.vf_instanced_move.argtypes = [ctypes.c_void_p, _f32p]
         lib.vf_instanced_scene.restype = ctypes.c_void_p
         lib.vf_instanced_scene.argtypes = [ctypes.c_void_p]
+        lib.vf_instanced_moving.restype = ctypes.c_void_p
+        lib.vf_instanced_moving.argtypes = [ctypes.c_void_p]
         lib.vf_trace.restype = ctypes.c_int
         lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
         lib.vf_points_new.restype = ctypes.c_void_p
@@ -138,16 +142,22 @@ class NativeScene:
 class NativeInstancedScene:
     """A scene with moving parts: Embree instances over per-part BVHs, moved by translations.
 
-    Part 0 is the static geometry, parts 1.. the moving objects (local frames); each part's BVH is
-    built once, and :meth:`move` re-commits only the top-level scene over the instances. Hits report
-    the triangle index in the concatenation of the parts (``prim_offsets``), as a flat scene would.
+    Part 0 is the static geometry (a plain BVH, built once, as a :class:`NativeScene`'s), parts 1..
+    the moving objects: instances of their local-frame BVHs (built once) in a top-level scene of
+    their own (``moving``); :meth:`move` sets their translations and re-commits that top level
+    only. The tracer traces the static part, then the instances. Hits report the triangle index in
+    the concatenation of the parts (``prim_offsets``), as a flat scene would.
 
     Args:
         triangles: ``(F, 3, 3)`` every part's triangles, part after part.
         counts: ``(P,)`` triangles per part (a part may be empty).
+        radii: ``(P - 1,)`` bounding radius of each moving part about its frame's origin, m.
+
+    Attributes:
+        centres: ``(P - 1, 3)`` float64 the moving parts' translations (where :meth:`move` put them).
     """
 
-    def __init__(self, triangles: np.ndarray, counts: Sequence[int]) -> None:
+    def __init__(self, triangles: np.ndarray, counts: Sequence[int], radii: Sequence[float]) -> None:
         self._lib = _lib()
         self.handle: int | None = None
         self._instanced: int | None = None
@@ -157,28 +167,34 @@ class NativeInstancedScene:
             raise ConfigError(f"triangles shape {tris.shape} must be (F, 3, 3) with F = sum(counts) = {counts64.sum()}")
         self.parts = len(counts64)
         self.prim_offsets = np.ascontiguousarray(np.concatenate([[0], np.cumsum(counts64)[:-1]]), dtype=np.int32)
+        self.radii = np.ascontiguousarray(radii, dtype=np.float64)
+        self.centres = np.zeros((self.parts - 1, 3))
+        if self.radii.shape != (self.parts - 1,):
+            raise ConfigError(f"radii shape {self.radii.shape} must be ({self.parts - 1},), one per moving part")
         handle = self._lib.vf_instanced_new(tris.ctypes.data_as(_f32p), counts64.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
                                             self.parts)
         if not handle:
             raise _error(self._lib, f"building the instanced scene of {self.parts} parts, {len(tris)} triangles")
         self._instanced = handle
         self.handle = self._lib.vf_instanced_scene(handle)
+        self.moving = self._lib.vf_instanced_moving(handle)
 
     def move(self, translations: np.ndarray) -> None:
-        """Place every part: ``(P, 3)`` translations (part 0, the static one, normally at 0)."""
+        """Place the moving parts 1..P-1: ``(P - 1, 3)`` translations."""
         if self._instanced is None:
             raise ConfigError("move() on a closed NativeInstancedScene")
         t = np.ascontiguousarray(translations, dtype=np.float32)
-        if t.shape != (self.parts, 3):
-            raise ConfigError(f"translations shape {t.shape} must be ({self.parts}, 3)")
+        if t.shape != (self.parts - 1, 3):
+            raise ConfigError(f"translations shape {t.shape} must be ({self.parts - 1}, 3)")
         if self._lib.vf_instanced_move(self._instanced, t.ctypes.data_as(_f32p)) != 0:
             raise _error(self._lib, "moving the instances")
+        self.centres = np.ascontiguousarray(translations, dtype=np.float64)
 
     def close(self) -> None:
         """Free the BVHs; idempotent."""
         if self._instanced is not None:
             self._lib.vf_instanced_free(self._instanced)
-            self._instanced = self.handle = None
+            self._instanced = self.handle = self.moving = None
 
     def __del__(self) -> None:  # last resort; renderers call close()
         self.close()
@@ -279,7 +295,9 @@ class Batch:
         drone: ``(n, H, W)`` int32 output: the drone seen (``-1``: none), or None.
         light: ``(n, H, W)`` float64 output: brightness of the drone seen, or None (needs ``drones.rots``).
 
-    An instanced scene's batch also passes its ``prim_offsets`` (taken from the scene).
+    An instanced scene's batch also passes its ``prim_offsets``, its moving top-level scene and the
+    moving parts' bounding spheres (all taken from the scene): tiles no sphere's image covers skip
+    the moving pass.
     """
 
     scene: "NativeScene | NativeInstancedScene"
@@ -297,6 +315,7 @@ class Batch:
     drones: "Drones | None" = None
     drone: np.ndarray | None = None
     light: np.ndarray | None = None
+    focal: float = 0.0
 
     def to_struct(self) -> _Batch:
         n, h, w = self.depth.shape
@@ -320,8 +339,12 @@ class Batch:
         out = _Batch(self.scene.handle, n, w, h, float(self.near), float(self.far), ptr(self.right), ptr(self.down),
                      ptr(self.origins), ptr(self.rots), ptr(self.depth), ptr(self.prim), ptr(self.uv),
                      ptr(self.seg_table), ptr(self.seg))
-        offsets = getattr(self.scene, "prim_offsets", None)
-        out.prim_offsets = ptr(offsets)
+        if isinstance(self.scene, NativeInstancedScene):
+            sc = self.scene
+            assert sc.centres.dtype == np.float64 and sc.centres.shape == (sc.parts - 1, 3) and sc.centres.flags.c_contiguous
+            out.prim_offsets, out.moving = ptr(sc.prim_offsets), sc.moving
+            out.moving_count, out.moving_centres, out.moving_radii = sc.parts - 1, ptr(sc.centres), ptr(sc.radii)
+            out.moving_focal = float(self.focal)
         if d is not None:
             out.vis_offsets, out.vis_drone, out.vis_centre, out.vis_dist2 = (
                 ptr(d.offsets), ptr(d.index), ptr(d.centres), ptr(d.dist2))

@@ -137,8 +137,9 @@ class RaycastRenderer(Renderer):
         self.tracer = tracer or default_tracer()[0]
         if self.tracer == "native":
             try:
-                self._native = (render_native.NativeInstancedScene(triangles, self._part_counts) if moving
-                                else render_native.NativeScene(triangles))
+                self._native = (render_native.NativeInstancedScene(triangles, self._part_counts,
+                                                                   [o.bounding_radius for o in moving])
+                                if moving else render_native.NativeScene(triangles))
             except RuntimeError as exc:
                 if tracer == "native":
                     raise
@@ -160,7 +161,7 @@ class RaycastRenderer(Renderer):
         """Native: new instance transforms (the top-level BVH only). embreex: a fresh BVH of the
         moving objects' triangles alone, translated (the static BVH is kept)."""
         if self._native is not None:
-            self._native.move(np.concatenate([np.zeros((1, 3)), translations]))
+            self._native.move(translations)
             return
         shift = np.repeat(translations, self._part_counts[1:], axis=0).astype(np.float32)
         self._embree_moving = _embreex_scene(self._moving_triangles + shift[:, None, :])
@@ -207,7 +208,7 @@ class RaycastRenderer(Renderer):
                 seg=np.empty(shape, np.uint16) if cam.kind == "segmentation" else None,
                 drones=self._native_drones(cam, origins, rots, poses[:, :3]) if drawn else None,
                 drone=np.empty(shape, np.int32) if drawn and rgb else None,
-                light=np.empty(shape, np.float64) if drawn and rgb else None))
+                light=np.empty(shape, np.float64) if drawn and rgb else None, focal=cam.focal_px))
         return _Plan(poses, show_drones, batches)
 
     def _native_drones(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray,
