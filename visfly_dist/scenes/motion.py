@@ -75,19 +75,21 @@ class Motion(abc.ABC):
         The answer for the last scalar ``t`` is kept (read-only arrays): a worker's renderer and
         queries ask for the same instant in turn.
         """
-        t = np.asarray(t, dtype=np.float64)
-        last = getattr(self, "_last", None)
-        if t.ndim == 0 and last is not None and last[0] == float(t):
-            return last[1]
-        s = np.mod(self.speed * t.reshape(-1), self.length)
-        p, v, a = self._at_arc(s)
-        shape = t.shape + (3,)
-        state = MotionState(p.reshape(shape), v.reshape(shape), a.reshape(shape))
-        if t.ndim == 0:
+        if np.ndim(t) == 0:   # one instant: scalar arithmetic, and the answer kept
+            t = float(t)
+            last = getattr(self, "_last", None)
+            if last is not None and last[0] == t:
+                return last[1]
+            p, v, a = self._at_arc(np.array([(self.speed * t) % self.length]))
+            state = MotionState(p[0], v[0], a[0])
             for array in (state.position, state.velocity, state.acceleration):
                 array.flags.writeable = False
-            self._last = (float(t), state)
-        return state
+            self._last = (t, state)
+            return state
+        t = np.asarray(t, dtype=np.float64)
+        p, v, a = self._at_arc(np.mod(self.speed * t.reshape(-1), self.length))
+        shape = t.shape + (3,)
+        return MotionState(p.reshape(shape), v.reshape(shape), a.reshape(shape))
 
     def position(self, t: float | np.ndarray) -> np.ndarray:
         """Position at times ``t``, ``t.shape + (3,)``."""
