@@ -209,7 +209,12 @@ class Spline(Motion):
         lo, hi = self._table_tau[:-1], np.where(np.diff(self._table_seg) != 0, chords[self._table_seg[:-1]], self._table_tau[1:])
         pieces = self._speed_integral(self._table_seg[:-1], lo, hi)
         self._table_s = np.concatenate([[0.0], np.cumsum(pieces)])
-        self._table_slope = 1.0 / np.linalg.norm(self._eval(self._table_seg, self._table_tau, 1), axis=1)   # du/ds
+        slope = 1.0 / np.linalg.norm(self._eval(self._table_seg, self._table_tau, 1), axis=1)   # du/ds
+        seg = self._table_seg[:-1]
+        end = np.where(self._table_seg[1:] == seg, self._table_tau[1:], chords[seg])
+        # per table interval: s0, ds, segment, tau0, dtau, du/ds at both ends
+        self._table = np.stack([self._table_s[:-1], np.diff(self._table_s), seg, self._table_tau[:-1],
+                                end - self._table_tau[:-1], slope[:-1], slope[1:]], axis=1)
 
     @property
     def length(self) -> float:
@@ -233,19 +238,18 @@ class Spline(Motion):
 
     def _at_arc(self, s):
         j = np.clip(np.searchsorted(self._table_s, s, side="right") - 1, 0, len(self._table_s) - 2)
-        s0, ds = self._table_s[j], self._table_s[j + 1] - self._table_s[j]
-        seg = self._table_seg[j]
-        u0 = self._table_tau[j]
-        du = np.where(self._table_seg[j + 1] == seg, self._table_tau[j + 1], self._knots[seg + 1] - self._knots[seg]) - u0
+        s0, ds, seg, u0, du, m0, m1 = self._table[j].T
         x = (s - s0) / ds   # cubic Hermite of tau(s) on [s0, s0 + ds]
         x2, x3 = x * x, x * x * x
-        tau = (u0 + (3 * x2 - 2 * x3) * du + (x3 - 2 * x2 + x) * ds * self._table_slope[j]
-               + (x3 - x2) * ds * self._table_slope[j + 1])
-        d1, d2 = self._eval(seg, tau, 1), self._eval(seg, tau, 2)
+        tau = (u0 + (3 * x2 - 2 * x3) * du + (x3 - 2 * x2 + x) * ds * m0 + (x3 - x2) * ds * m1)[:, None]
+        c = self._coef[seg.astype(np.int64)]
+        d2 = 2 * c[:, 2] + 6 * tau * c[:, 3]
+        d1 = c[:, 1] + tau * (2 * c[:, 2] + 3 * tau * c[:, 3])
+        position = c[:, 0] + tau * (c[:, 1] + tau * (c[:, 2] + tau * c[:, 3]))
         norm2 = np.einsum("ij,ij->i", d1, d1)[:, None]
         tangent = d1 / np.sqrt(norm2)
         normal = d2 - tangent * np.einsum("ij,ij->i", tangent, d2)[:, None]
-        return self._eval(seg, tau, 0), self.speed * tangent, (self.speed ** 2) * normal / norm2
+        return position, self.speed * tangent, (self.speed ** 2) * normal / norm2
 
     def _corners(self) -> np.ndarray:
         return self.points
