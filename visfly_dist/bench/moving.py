@@ -24,7 +24,8 @@ from visfly_dist.protocol.cameras import CameraSpec
 
 GOAL_OVERHEAD = 0.10
 WHERE = "moving_vs_static"   # the rows' ``where``: in-process, this comparison only
-STEP_S = 0.03   # simulation time between two moving calls (one env step)
+INSTANTS = 4     # the moving scene cycles through these instants, one static copy each
+INSTANT_S = 0.25   # seconds between two instants
 
 
 def moving_rows(moving: int, agents: int, reps: int, seed: int = 0, res: int = 64, search_radius: float = 5.0,
@@ -39,26 +40,30 @@ def moving_rows(moving: int, agents: int, reps: int, seed: int = 0, res: int = 6
         log("[bench render] skipping the moving-obstacle rows: no raycast backend")
         return []
     world = generate_scene("garage-stones", seed=seed, moving=moving)
-    static = world.at_time(0.0)
-    poses = bench_poses(static, agents, seed)
+    poses = bench_poses(world.at_time(0.0), agents, seed)
     cam = CameraSpec(width=res, height=res)
     timings: dict[tuple[str, str], list[float]] = {(s, w): [] for s in ("static", "moving") for w in ("render", "queries")}
-    with make_renderer("raycast", static, [cam], DRONE_RADIUS) as r_static, \
-            make_renderer("raycast", world, [cam], DRONE_RADIUS) as r_moving:
-        q_static, q_moving = ObstacleQueries(static, DRONE_RADIUS), ObstacleQueries(world, DRONE_RADIUS)
-        tracer = r_moving.tracer
-        for rep in range(reps + 1):   # rep 0 warms up
-            t = (rep + 1) * STEP_S
-            pair = [("static", r_static, q_static, 0.0), ("moving", r_moving, q_moving, t)]
-            for name, renderer, queries, when in (pair if rep % 2 else pair[::-1]):
+    instants = [k * INSTANT_S for k in range(INSTANTS)]
+    statics = [world.at_time(t) for t in instants]   # each instant, every object static (built untimed)
+    renderers = [make_renderer("raycast", scene, [cam], DRONE_RADIUS) for scene in [world, *statics]]
+    try:
+        queries = [ObstacleQueries(scene, DRONE_RADIUS) for scene in [world, *statics]]
+        tracer = renderers[0].tracer
+        for rep in range(reps + INSTANTS):   # the first round warms every renderer up
+            k = rep % INSTANTS
+            pair = [("static", renderers[1 + k], queries[1 + k]), ("moving", renderers[0], queries[0])]
+            for name, renderer, query in (pair if rep % 2 else pair[::-1]):
                 t0 = time.process_time()
-                renderer.render(poses, time=when)
+                renderer.render(poses, time=instants[k])
                 t1 = time.process_time()
-                queries.query(poses[:, :3], search_radius, time=when)
+                query.query(poses[:, :3], search_radius, time=instants[k])
                 t2 = time.process_time()
-                if rep:
+                if rep >= INSTANTS:
                     timings[(name, "render")].append(t1 - t0)
                     timings[(name, "queries")].append(t2 - t1)
+    finally:
+        for renderer in renderers:
+            renderer.close()
     med = {key: float(np.median(v)) for key, v in timings.items()}
     rows = []
     for what, parts in (("render", ("render",)), ("render+queries", ("render", "queries"))):
