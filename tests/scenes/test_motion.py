@@ -174,3 +174,16 @@ def test_garage_moving_stones_are_deterministic_and_leave_the_static_scene_as_it
         assert gap.min() >= obj.bounding_radius
     with pytest.raises(SceneError, match=r"moving=101 must be in \[0, 100\]"):
         generate_scene("garage-stones", moving=101)
+
+
+@pytest.mark.parametrize("motion", [Circle([1, 2, 3], 2.0, 1.0, phase=1.0), Polygon([[0, 0, 1], [1, 0, 1], [1, 1, 2]], 0.7),
+                                    Spline(SPLINE_POINTS, 1.3)])
+def test_one_instant_agrees_with_the_vectorised_path(motion):
+    times = np.linspace(-5.0, 40.0, 91)
+    batch = motion.state(times)
+    for k, t in enumerate(times):
+        one = motion.state(float(t))
+        np.testing.assert_allclose(one.position, batch.position[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(one.velocity, batch.velocity[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(one.acceleration, batch.acceleration[k], rtol=0, atol=1e-10)
+    assert motion.state(2.0) is motion.state(2.0) and not motion.state(2.0).position.flags.writeable

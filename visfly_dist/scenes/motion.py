@@ -22,6 +22,7 @@ Dicts (``to_dict``/:func:`motion_from_dict`) hold plain lists and floats with a 
 from __future__ import annotations
 
 import abc
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Any, Mapping
@@ -80,8 +81,8 @@ class Motion(abc.ABC):
             last = getattr(self, "_last", None)
             if last is not None and last[0] == t:
                 return last[1]
-            p, v, a = self._at_arc(np.array([(self.speed * t) % self.length]))
-            state = MotionState(p[0], v[0], a[0])
+            p, v, a = self._at_one((self.speed * t) % self.length)
+            state = MotionState(p, v, a)
             for array in (state.position, state.velocity, state.acceleration):
                 array.flags.writeable = False
             self._last = (t, state)
@@ -103,6 +104,11 @@ class Motion(abc.ABC):
 
     def _corners(self) -> np.ndarray:
         return np.zeros((0, 3))
+
+    def _at_one(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_at_arc` of one arc length: three ``(3,)`` arrays."""
+        p, v, a = self._at_arc(np.array([s]))
+        return p[0], v[0], a[0]
 
     @abc.abstractmethod
     def _at_arc(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -144,6 +150,13 @@ class Circle(Motion):
         tangent = -si * self._e1 + c * self._e2
         return self.centre + self.radius * radial, self.speed * tangent, -(self.speed ** 2 / self.radius) * radial
 
+    def _at_one(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        theta = self.phase + s / self.radius
+        c, si = math.cos(theta), math.sin(theta)
+        radial = c * self._e1 + si * self._e2
+        return (self.centre + self.radius * radial, self.speed * (c * self._e2 - si * self._e1),
+                -(self.speed ** 2 / self.radius) * radial)
+
     def to_dict(self) -> dict[str, Any]:
         return {"type": self.kind, "centre": self.centre.tolist(), "radius": self.radius, "speed": self.speed,
                 "axis": self.axis.tolist(), "phase": self.phase}
@@ -162,6 +175,7 @@ class Polygon(Motion):
         _check_edges(self._edge_lengths, "polygon.vertices")
         self._units = edges / self._edge_lengths[:, None]
         self._starts = np.concatenate([[0.0], np.cumsum(self._edge_lengths)[:-1]])
+        self._starts_list = self._starts.tolist()
 
     @property
     def length(self) -> float:
@@ -171,6 +185,11 @@ class Polygon(Motion):
         k = np.clip(np.searchsorted(self._starts, s, side="right") - 1, 0, len(self._starts) - 1)
         position = self.vertices[k] + (s - self._starts[k])[:, None] * self._units[k]
         return position, self.speed * self._units[k], np.zeros_like(position)
+
+    def _at_one(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        k = min(max(bisect.bisect_right(self._starts_list, s) - 1, 0), len(self._starts_list) - 1)
+        unit = self._units[k]
+        return self.vertices[k] + (s - self._starts_list[k]) * unit, self.speed * unit, np.zeros(3)
 
     def _corners(self) -> np.ndarray:
         return self.vertices
@@ -215,6 +234,8 @@ class Spline(Motion):
         # per table interval: s0, ds, segment, tau0, dtau, du/ds at both ends
         self._table = np.stack([self._table_s[:-1], np.diff(self._table_s), seg, self._table_tau[:-1],
                                 end - self._table_tau[:-1], slope[:-1], slope[1:]], axis=1)
+        self._table_list_s, self._table_rows = self._table_s.tolist(), [tuple(r) for r in self._table.tolist()]
+        self._coef_rows = self._coef.tolist()
 
     @property
     def length(self) -> float:
@@ -250,6 +271,25 @@ class Spline(Motion):
         tangent = d1 / np.sqrt(norm2)
         normal = d2 - tangent * np.einsum("ij,ij->i", tangent, d2)[:, None]
         return position, self.speed * tangent, (self.speed ** 2) * normal / norm2
+
+    def _at_one(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_at_arc` of one arc length in Python floats (numpy's per-call cost dominates there)."""
+        j = min(max(bisect.bisect_right(self._table_list_s, s) - 1, 0), len(self._table_list_s) - 2)
+        s0, ds, seg, u0, du, m0, m1 = self._table_rows[j]
+        x = (s - s0) / ds
+        x2, x3 = x * x, x * x * x
+        tau = u0 + (3 * x2 - 2 * x3) * du + (x3 - 2 * x2 + x) * ds * m0 + (x3 - x2) * ds * m1
+        c0, c1, c2, c3 = self._coef_rows[int(seg)]
+        p = [c0[a] + tau * (c1[a] + tau * (c2[a] + tau * c3[a])) for a in range(3)]
+        d1 = [c1[a] + tau * (2 * c2[a] + 3 * tau * c3[a]) for a in range(3)]
+        d2 = [2 * c2[a] + 6 * tau * c3[a] for a in range(3)]
+        norm2 = d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]
+        norm = math.sqrt(norm2)
+        t = [d / norm for d in d1]
+        along = t[0] * d2[0] + t[1] * d2[1] + t[2] * d2[2]
+        k = self.speed ** 2 / norm2
+        return (np.array(p), np.array([self.speed * x for x in t]),
+                np.array([k * (d2[a] - t[a] * along) for a in range(3)]))
 
     def _corners(self) -> np.ndarray:
         return self.points
