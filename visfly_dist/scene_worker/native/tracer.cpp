@@ -273,9 +273,9 @@ struct Box {
   int64_t i0, i1, j0, j1;  // pixel rows and columns, inclusive
 };
 
-// The image boxes (one pixel wider on every side) of the moving parts' bounding spheres that may
-// show in frame `agent`, by the sphere-box projection draw_drones uses; a sphere reaching behind
-// the camera plane covers the whole image.
+// The pixel boxes of the moving parts' bounding spheres that may show in frame `agent`: the pixels
+// whose centres lie in the image of the sphere's bounding cube (which holds the sphere's image), as
+// draw_drones finds them; a sphere reaching behind the camera plane covers the whole image.
 std::vector<Box> moving_boxes(const vf_batch& b, int32_t agent) {
   std::vector<Box> out;
   const float* o = b.origins + 3 * static_cast<size_t>(agent);
@@ -302,10 +302,9 @@ std::vector<Box> moving_boxes(const vf_batch& b, int32_t agent) {
           zmax = std::max(zmax, (c[2] + s) / x);
         }
       }
-      box = {static_cast<int64_t>(std::floor(0.5 * h - f * zmax - 0.5)) - 1,
-             static_cast<int64_t>(std::ceil(0.5 * h - f * zmin - 0.5)) + 1,
-             static_cast<int64_t>(std::floor(0.5 * w - f * ymax - 0.5)) - 1,
-             static_cast<int64_t>(std::ceil(0.5 * w - f * ymin - 0.5)) + 1};
+      box = {static_cast<int64_t>(std::ceil(0.5 * h - f * zmax - 0.5)), static_cast<int64_t>(std::floor(0.5 * h - f * zmin - 0.5)),
+             static_cast<int64_t>(std::ceil(0.5 * w - f * ymax - 0.5)), static_cast<int64_t>(std::floor(0.5 * w - f * ymin - 0.5))};
+      if (box.i0 > box.i1 || box.j0 > box.j1) continue;  // no pixel centre inside
       if (box.i1 < 0 || box.j1 < 0 || box.i0 >= b.height || box.j0 >= b.width) continue;
     }
     out.push_back(box);
