@@ -4,7 +4,8 @@ The library is built at install time (``make -C visfly_dist/scene_worker/native`
 ``setup.sh``) against Debian's Embree 3. :func:`load_library` finds it, or says why not; the
 raycast backend then falls back to embreex. ``VISFLY_NATIVE_TRACER=0`` turns it off.
 
-A :class:`NativeScene` holds one scene's Embree BVH (built once). :func:`trace` renders a list of
+A :class:`NativeScene` holds one scene's Embree BVH (built once); a :class:`NativeInstancedScene`
+a scene with moving obstacles (the static BVH plus instances moved per call). :func:`trace` renders a list of
 :class:`Batch` es (one camera of many drones of one scene each) in ONE native call: the tracer's
 threads spread over every frame of every batch, and ctypes releases the GIL for the whole call.
 

@@ -1,8 +1,9 @@
 """The ``raycast`` backend: Embree primary rays through every pixel centre.
 
 One Embree scene holds every triangle of the scene; a triangle -> object id table gives
-segmentation. Moving obstacles: the native tracer instances the static triangles and each moving
-object (per-call transforms, only the top-level BVH re-committed); embreex keeps the static BVH and
+segmentation. Moving obstacles: the native tracer keeps the static BVH and traces the moving
+objects as Embree instances after it (per-call translations, only their top-level scene
+re-committed; :class:`~render_native.NativeInstancedScene`); embreex keeps the static BVH and
 builds a small one of the moving objects' translated triangles per call, the nearer hit winning. Two tracers give the same depth (bit for bit) and the same triangle per pixel:
 
 - ``native`` (the fast path): :mod:`render_native`'s packet tracer, 16 rays per call on 4x4 pixel
