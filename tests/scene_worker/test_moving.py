@@ -23,6 +23,7 @@ from visfly_dist.scenes.motion import Circle, Polygon, Spline, motion_from_dict
 from visfly_dist.scenes.scene import MOVING_KEY, Scene, SceneObject
 
 CAMERAS = (CameraSpec(name="depth", width=48, height=32), CameraSpec(name="seg", kind="segmentation", width=48, height=32))
+RGB = CameraSpec(name="rgb", kind="rgb", width=48, height=32)
 TOLERANCE_M = 1e-5
 TIMES = (0.0, 1.3, 4.75, 11.2)
 GEN_SOURCE = "gen:garage-stones?seed=2&density=0.03&moving=4"
@@ -35,7 +36,10 @@ def _box_scene() -> Scene:
     motions = [Circle([4.0, 0.0, 1.2], 1.5, 1.1, phase=0.4), Polygon([[3, -5, 1], [6, -5, 1.5], [6, -3.2, 1]], 0.8),
                Spline([[3, 2.6, 1], [5, 2.4, 1.4], [6, 4, 1], [4, 4.5, 1.2]], 1.4)]
     objects = [SceneObject("floor", 1, floor), SceneObject("wall", 2, wall)]
-    objects += [SceneObject(f"cube{k}", 3 + k, trimesh.creation.box(extents=(0.6, 0.6, 0.6)), m) for k, m in enumerate(motions)]
+    for k, motion in enumerate(motions):
+        cube = trimesh.creation.box(extents=(0.6, 0.6, 0.6))
+        cube.visual.face_colors = [200, 40 * k, 30, 255]
+        objects.append(SceneObject(f"cube{k}", 3 + k, cube, motion))
     return Scene("boxes", objects, np.array([[-2, -6, 0], [10, 6, 4]]))
 
 
@@ -62,19 +66,20 @@ def _backends() -> list[tuple[str, dict]]:
 @pytest.mark.parametrize("backend, options", _backends(), ids=lambda v: v if isinstance(v, str) else v.get("tracer", ""))
 def test_moving_render_matches_the_static_scene_of_the_same_instant(backend, options):
     scene = _box_scene()
-    moving = make_renderer(backend, scene, CAMERAS, **options)
+    moving = make_renderer(backend, scene, CAMERAS + (RGB,), **options)
     ids = [o.object_id for o in scene.moving_objects]
     try:
         previous = None
         for t in TIMES:
             poses = _poses_at(scene, t)
             got = moving.render(poses, time=t)
-            with make_renderer(backend, scene.at_time(t), CAMERAS, **options) as static:
+            with make_renderer(backend, scene.at_time(t), CAMERAS + (RGB,), **options) as static:
                 want = static.render(poses)
             np.testing.assert_allclose(got["depth"], want["depth"], rtol=0, atol=TOLERANCE_M)
             np.testing.assert_array_equal(got["seg"], want["seg"])
+            assert np.abs(got["rgb"].astype(int) - want["rgb"]).mean() < 0.5   # same colours where they are
             for k, object_id in enumerate(ids):   # camera k sees cube k in the middle of its image
-                assert got["seg"][k, 0, 16, 24] == object_id
+                assert got["seg"][k, 0, 16, 24] == object_id and got["rgb"][k, 0, 16, 24] > 100   # red
                 assert got["depth"][k, 0, 16, 24] == pytest.approx(2.5 - 0.3, abs=TOLERANCE_M)
             if previous is not None:
                 assert not np.array_equal(moving.render(previous[0], time=t)["seg"], previous[1])   # it moved
