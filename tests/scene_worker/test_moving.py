@@ -18,7 +18,7 @@ from visfly_dist.scene_worker import render_native
 from visfly_dist.scene_worker.queries import ObstacleQueries
 from visfly_dist.scene_worker.render_base import available_backends, make_renderer, render_scenes
 from visfly_dist.scene_worker.render_raycast import RaycastRenderer
-from visfly_dist.scenes import generate_scene, resolve_source, sample_free_positions
+from visfly_dist.scenes import resolve_source, sample_free_positions
 from visfly_dist.scenes.motion import Circle, Polygon, Spline, motion_from_dict
 from visfly_dist.scenes.scene import MOVING_KEY, Scene, SceneObject
 

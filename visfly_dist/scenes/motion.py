@@ -221,19 +221,16 @@ class Spline(Motion):
         # segment i: C(tau) = p_i + b tau + c tau^2 + d tau^3, tau in [0, h_i]
         self._coef = np.stack([self.points, (np.roll(self.points, -1, axis=0) - self.points) / h - h * (2 * m + m_next) / 6,
                                m / 2, (m_next - m) / (6 * h)], axis=1)          # (k, 4, 3)
-        self._knots = np.concatenate([[0.0], np.cumsum(chords)])
         sub = np.arange(_ARC_SUBDIVISIONS) / _ARC_SUBDIVISIONS
-        self._table_seg = np.append(np.repeat(np.arange(len(chords)), _ARC_SUBDIVISIONS), len(chords) - 1)
-        self._table_tau = np.append((chords[:, None] * sub[None, :]).reshape(-1), chords[-1])
-        lo, hi = self._table_tau[:-1], np.where(np.diff(self._table_seg) != 0, chords[self._table_seg[:-1]], self._table_tau[1:])
-        pieces = self._speed_integral(self._table_seg[:-1], lo, hi)
-        self._table_s = np.concatenate([[0.0], np.cumsum(pieces)])
-        slope = 1.0 / np.linalg.norm(self._eval(self._table_seg, self._table_tau, 1), axis=1)   # du/ds
-        seg = self._table_seg[:-1]
-        end = np.where(self._table_seg[1:] == seg, self._table_tau[1:], chords[seg])
+        table_seg = np.append(np.repeat(np.arange(len(chords)), _ARC_SUBDIVISIONS), len(chords) - 1)
+        table_tau = np.append((chords[:, None] * sub[None, :]).reshape(-1), chords[-1])
+        seg = table_seg[:-1]
+        end = np.where(table_seg[1:] == seg, table_tau[1:], chords[seg])   # a segment's last entry ends at its end
+        self._table_s = np.concatenate([[0.0], np.cumsum(self._speed_integral(seg, table_tau[:-1], end))])
+        slope = 1.0 / np.linalg.norm(self._velocity(table_seg, table_tau), axis=1)   # du/ds
         # per table interval: s0, ds, segment, tau0, dtau, du/ds at both ends
-        self._table = np.stack([self._table_s[:-1], np.diff(self._table_s), seg, self._table_tau[:-1],
-                                end - self._table_tau[:-1], slope[:-1], slope[1:]], axis=1)
+        self._table = np.stack([self._table_s[:-1], np.diff(self._table_s), seg, table_tau[:-1],
+                                end - table_tau[:-1], slope[:-1], slope[1:]], axis=1)
         self._table_list_s, self._table_rows = self._table_s.tolist(), [tuple(r) for r in self._table.tolist()]
         self._coef_rows = self._coef.tolist()
 
@@ -241,20 +238,16 @@ class Spline(Motion):
     def length(self) -> float:
         return float(self._table_s[-1])
 
-    def _eval(self, seg: np.ndarray, tau: np.ndarray, order: int) -> np.ndarray:
-        """The ``order``-th derivative (0, 1, 2) of segment ``seg`` at ``tau`` (Horner), ``(n, 3)``."""
+    def _velocity(self, seg: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """The knot-parameter derivative of segment ``seg`` at ``tau``, ``(n, 3)``."""
         c, t = self._coef[seg], tau[:, None]
-        if order == 0:
-            return c[:, 0] + t * (c[:, 1] + t * (c[:, 2] + t * c[:, 3]))
-        if order == 1:
-            return c[:, 1] + t * (2 * c[:, 2] + 3 * t * c[:, 3])
-        return 2 * c[:, 2] + 6 * t * c[:, 3]
+        return c[:, 1] + t * (2 * c[:, 2] + 3 * t * c[:, 3])
 
     def _speed_integral(self, seg: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Arc length of segment ``seg`` between ``tau = lo`` and ``hi``, ``(n,)``."""
         half, mid = (hi - lo) / 2, (hi + lo) / 2
         tau = (mid[:, None] + half[:, None] * _GAUSS_X[None, :]).reshape(-1)
-        speed = np.linalg.norm(self._eval(np.repeat(seg, len(_GAUSS_X)), tau, 1), axis=1).reshape(len(lo), -1)
+        speed = np.linalg.norm(self._velocity(np.repeat(seg, len(_GAUSS_X)), tau), axis=1).reshape(len(lo), -1)
         return half * (speed @ _GAUSS_W)
 
     def _at_arc(self, s):
