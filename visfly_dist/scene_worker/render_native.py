@@ -49,7 +49,7 @@ class _Batch(ctypes.Structure):
         ("right64", ctypes.c_void_p), ("down64", ctypes.c_void_p), ("drone", ctypes.c_void_p),
         ("rots64", ctypes.c_void_p), ("light_dir", ctypes.c_void_p), ("ambient", ctypes.c_double),
         ("light", ctypes.c_void_p), ("prim_offsets", ctypes.c_void_p), ("moving", ctypes.c_void_p),
-        ("moving_count", ctypes.c_int32), ("moving_centres", ctypes.c_void_p), ("moving_radii", ctypes.c_void_p),
+        ("moving_count", ctypes.c_int32), ("moving_centres", ctypes.c_void_p), ("moving_bounds", ctypes.c_void_p),
         ("moving_focal", ctypes.c_double),
     ]
 
@@ -152,13 +152,14 @@ class NativeInstancedScene:
     Args:
         triangles: ``(F, 3, 3)`` every part's triangles, part after part.
         counts: ``(P,)`` triangles per part (a part may be empty).
-        radii: ``(P - 1,)`` bounding radius of each moving part about its frame's origin, m.
+        bounds: ``(P - 1, 2, 3)`` each moving part's axis-aligned box ``[low, high]`` in its own frame
+            (tiles that no part's box can show in skip the instances).
 
     Attributes:
         centres: ``(P - 1, 3)`` float64 the moving parts' translations (where :meth:`move` put them).
     """
 
-    def __init__(self, triangles: np.ndarray, counts: Sequence[int], radii: Sequence[float]) -> None:
+    def __init__(self, triangles: np.ndarray, counts: Sequence[int], bounds: np.ndarray) -> None:
         self._lib = _lib()
         self.handle: int | None = None
         self._instanced: int | None = None
@@ -168,10 +169,10 @@ class NativeInstancedScene:
             raise ConfigError(f"triangles shape {tris.shape} must be (F, 3, 3) with F = sum(counts) = {counts64.sum()}")
         self.parts = len(counts64)
         self.prim_offsets = np.ascontiguousarray(np.concatenate([[0], np.cumsum(counts64)[:-1]]), dtype=np.int32)
-        self.radii = np.ascontiguousarray(radii, dtype=np.float64)
+        self.bounds = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 2, 3)
         self.centres = np.zeros((self.parts - 1, 3))
-        if self.radii.shape != (self.parts - 1,):
-            raise ConfigError(f"radii shape {self.radii.shape} must be ({self.parts - 1},), one per moving part")
+        if self.bounds.shape != (self.parts - 1, 2, 3):
+            raise ConfigError(f"bounds shape {self.bounds.shape} must be ({self.parts - 1}, 2, 3), one box per moving part")
         handle = self._lib.vf_instanced_new(tris.ctypes.data_as(_f32p), counts64.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
                                             self.parts)
         if not handle:
@@ -297,8 +298,8 @@ class Batch:
         light: ``(n, H, W)`` float64 output: brightness of the drone seen, or None (needs ``drones.rots``).
 
     An instanced scene's batch also passes its ``prim_offsets``, its moving top-level scene and the
-    moving parts' bounding spheres (all taken from the scene): tiles no sphere's image covers skip
-    the moving pass.
+    moving parts' boxes (all taken from the scene): tiles no box's image covers skip the moving
+    pass.
     """
 
     scene: "NativeScene | NativeInstancedScene"
@@ -344,7 +345,7 @@ class Batch:
             sc = self.scene
             assert sc.centres.dtype == np.float64 and sc.centres.shape == (sc.parts - 1, 3) and sc.centres.flags.c_contiguous
             out.prim_offsets, out.moving = ptr(sc.prim_offsets), sc.moving
-            out.moving_count, out.moving_centres, out.moving_radii = sc.parts - 1, ptr(sc.centres), ptr(sc.radii)
+            out.moving_count, out.moving_centres, out.moving_bounds = sc.parts - 1, ptr(sc.centres), ptr(sc.bounds)
             out.moving_focal = float(self.focal)
         if d is not None:
             out.vis_offsets, out.vis_drone, out.vis_centre, out.vis_dist2 = (

@@ -139,7 +139,7 @@ class RaycastRenderer(Renderer):
         if self.tracer == "native":
             try:
                 self._native = (render_native.NativeInstancedScene(triangles, self._part_counts,
-                                                                   [o.bounding_radius for o in moving])
+                                                                   np.array([o.mesh.bounds for o in moving]))
                                 if moving else render_native.NativeScene(triangles))
             except RuntimeError as exc:
                 if tracer == "native":

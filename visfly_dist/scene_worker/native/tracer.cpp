@@ -107,11 +107,11 @@ struct vf_batch {
   double* light;               // (n, height, width) brightness of the drone seen; optional
   const int32_t* prim_offsets; // (parts,) first triangle of each part; null: no moving parts
   void* moving;                // top-level scene of the moving parts' instances, traced after `scene`
-  // The moving parts' bounding spheres (world centres, radii): a tile whose pixels no sphere's
-  // image box covers skips the moving pass. moving_count 0: every tile traces it.
+  // The moving parts' boxes: a tile whose pixels no box's image covers skips the moving pass.
+  // moving_count 0: every tile traces it.
   int32_t moving_count;
-  const double* moving_centres;  // (moving_count, 3)
-  const double* moving_radii;    // (moving_count,)
+  const double* moving_centres;  // (moving_count, 3) translations
+  const double* moving_bounds;   // (moving_count, 2, 3) each part's axis-aligned box in its own frame
   double moving_focal;           // focal length, pixels
 };
 
@@ -273,35 +273,47 @@ struct Box {
   int64_t i0, i1, j0, j1;  // pixel rows and columns, inclusive
 };
 
-// The pixel boxes of the moving parts' bounding spheres that may show in frame `agent`: the pixels
-// whose centres lie in the image of the sphere's bounding cube (which holds the sphere's image), as
-// draw_drones finds them; a sphere reaching behind the camera plane covers the whole image.
+// The pixel boxes of the moving parts that may show in frame `agent`: the pixels whose centres lie
+// in the image of the part's (translated) box, from its 8 corners; a box reaching behind the
+// camera plane covers the whole image. Parts wholly outside the view frustum (their box's bounding
+// sphere, camera_math.spheres_in_view's test) are left out.
 std::vector<Box> moving_boxes(const vf_batch& b, int32_t agent) {
   std::vector<Box> out;
   const float* o = b.origins + 3 * static_cast<size_t>(agent);
   const float* m = b.rots + 9 * static_cast<size_t>(agent);
   const double f = b.moving_focal, w = b.width, h = b.height;
-  for (int32_t k = 0; k < b.moving_count; ++k) {
-    const double* p = b.moving_centres + 3 * static_cast<size_t>(k);
-    const double r = b.moving_radii[k];
+  const double sw = 0.5 * w / f, sh = 0.5 * h / f;
+  auto to_camera = [&](const double* p, double* c) {  // c = R^T (p - o)
     const double d[3] = {p[0] - o[0], p[1] - o[1], p[2] - o[2]};
-    double c[3];
-    for (int a = 0; a < 3; ++a) c[a] = m[a] * d[0] + m[3 + a] * d[1] + m[6 + a] * d[2];  // R^T d
+    for (int a = 0; a < 3; ++a) c[a] = m[a] * d[0] + m[3 + a] * d[1] + m[6 + a] * d[2];
+  };
+  for (int32_t k = 0; k < b.moving_count; ++k) {
+    const double* t = b.moving_centres + 3 * static_cast<size_t>(k);
+    const double* lo = b.moving_bounds + 6 * static_cast<size_t>(k);
+    const double* hi = lo + 3;
+    double centre[3], c[3], r2 = 0.0;
+    for (int a = 0; a < 3; ++a) {
+      centre[a] = t[a] + 0.5 * (lo[a] + hi[a]);
+      r2 += 0.25 * (hi[a] - lo[a]) * (hi[a] - lo[a]);
+    }
+    const double r = std::sqrt(r2);
+    to_camera(centre, c);
     if (c[0] + r < b.near_m || c[0] - r > b.far_m) continue;
-    // outside a side plane of the view frustum (camera_math.spheres_in_view's test)
-    const double sw = 0.5 * w / f, sh = 0.5 * h / f;
     if (sw * c[0] - std::fabs(c[1]) < -r * std::hypot(1.0, sw) || sh * c[0] - std::fabs(c[2]) < -r * std::hypot(1.0, sh)) continue;
+    double xmin = INFINITY, ymin = INFINITY, ymax = -INFINITY, zmin = INFINITY, zmax = -INFINITY;
+    for (int corner = 0; corner < 8; ++corner) {
+      const double p[3] = {t[0] + (corner & 1 ? hi[0] : lo[0]), t[1] + (corner & 2 ? hi[1] : lo[1]),
+                           t[2] + (corner & 4 ? hi[2] : lo[2])};
+      double q[3];
+      to_camera(p, q);
+      xmin = std::min(xmin, q[0]);
+      ymin = std::min(ymin, q[1] / q[0]);
+      ymax = std::max(ymax, q[1] / q[0]);
+      zmin = std::min(zmin, q[2] / q[0]);
+      zmax = std::max(zmax, q[2] / q[0]);
+    }
     Box box{0, b.height - 1, 0, b.width - 1};
-    if (c[0] - r > 1e-6) {
-      double ymin = INFINITY, ymax = -INFINITY, zmin = INFINITY, zmax = -INFINITY;
-      for (double x : {c[0] - r, c[0] + r}) {
-        for (double s : {-r, r}) {
-          ymin = std::min(ymin, (c[1] + s) / x);
-          ymax = std::max(ymax, (c[1] + s) / x);
-          zmin = std::min(zmin, (c[2] + s) / x);
-          zmax = std::max(zmax, (c[2] + s) / x);
-        }
-      }
+    if (xmin > 1e-6) {  // in front of the camera plane: the corners' image holds the box's image
       box = {static_cast<int64_t>(std::ceil(0.5 * h - f * zmax - 0.5)), static_cast<int64_t>(std::floor(0.5 * h - f * zmin - 0.5)),
              static_cast<int64_t>(std::ceil(0.5 * w - f * ymax - 0.5)), static_cast<int64_t>(std::floor(0.5 * w - f * ymin - 0.5))};
       if (box.i0 > box.i1 || box.j0 > box.j1) continue;  // no pixel centre inside
