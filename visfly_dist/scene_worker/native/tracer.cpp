@@ -6,7 +6,8 @@
 // moving object (its triangles in its local frame, in a BVH built once). vf_instanced_move sets
 // the instances' translations and commits that top-level scene alone (a BVH over a few boxes,
 // tens of microseconds); the static BVH is never touched. A packet is traced through the static
-// scene, then through the instances with tfar already cut to the static hit. (Measured, 20 moving
+// scene, then through the instances with tfar already cut to the static hit; a 4x4 tile that no
+// moving object's (translated) box can show in skips the instances. (Measured, 20 moving
 // stones in garage-stones, 64x64 depth, 1 thread: the static part as one more instance of the same
 // top-level scene cost 15% more CPU than the static scene alone; the static triangles as a geometry
 // of a dynamic top-level scene re-built their BVH on every commit, 8 ms.) A hit's triangle index is
