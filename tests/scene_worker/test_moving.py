@@ -99,7 +99,9 @@ def test_generated_moving_stones_match_the_static_scene(tracer):
     quats = np.stack([np.cos(yaw / 2) * np.cos(pitch / 2), -np.sin(yaw / 2) * np.sin(pitch / 2),
                       np.cos(yaw / 2) * np.sin(pitch / 2), np.sin(yaw / 2) * np.cos(pitch / 2)], axis=1)
     anywhere = np.concatenate([rng.uniform(scene.bounds[0] + 0.3, scene.bounds[1] - 0.3, (60, 3)), quats], axis=1)
-    poses = np.concatenate([_poses_at(scene, t), anywhere])
+    centres = np.stack([o.motion.position(t) for o in scene.moving_objects])
+    inside = np.concatenate([centres + [0.05, 0.0, 0.0], quats[:len(centres)]], axis=1)   # a box behind the camera plane
+    poses = np.concatenate([_poses_at(scene, t), anywhere, inside])
     with RaycastRenderer(scene, CAMERAS, tracer=tracer) as moving, RaycastRenderer(scene.at_time(t), CAMERAS, tracer=tracer) as static:
         got, want = moving.render(poses, time=t), static.render(poses)
     # grazing hits far away may differ by a few float32 steps of the depth (1.9e-6 m at 16 m)
