@@ -34,6 +34,13 @@ def test_worker_answers_and_observation_follow_the_moving_stones(envs):
     env.step(hover(env))
     assert env.sim_time == pytest.approx(t_next)
     positions = env.state.pos.detach().numpy().astype(np.float32).astype(np.float64)
+    states = env.moving_states()   # positions, velocities and accelerations exposed to the task
+    for agent, scene in enumerate(scenes):
+        for j, obj in enumerate(scene.moving_objects):
+            want_state = obj.motion.state(env.sim_time)
+            np.testing.assert_allclose(states.position[agent, j].numpy(), want_state.position, atol=1e-5)
+            np.testing.assert_allclose(states.acceleration[agent, j].numpy(), want_state.acceleration, atol=1e-5)
+    assert bool(states.valid.all())
     obs = env.moving_observation()
     k = env.config.moving_nearest
     assert obs.shape == (env.num_envs, MOVING_ROW * k)

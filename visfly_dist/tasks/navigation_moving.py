@@ -32,6 +32,22 @@ MOVING_ROW = 7
 """Entries per obstacle row of the ``moving`` observation: relative position (3), velocity (3), valid."""
 
 
+@dataclass(frozen=True)
+class MovingStates:
+    """The moving obstacles of every agent's scene at one instant, world frame, padded to ``M``.
+
+    Attributes:
+        position: ``(N, M, 3)`` m. velocity: ``(N, M, 3)`` m/s. acceleration: ``(N, M, 3)`` m/s^2.
+        radius: ``(N, M)`` bounding radius, m. valid: ``(N, M)`` bool, False for padding.
+    """
+
+    position: torch.Tensor
+    velocity: torch.Tensor
+    acceleration: torch.Tensor
+    radius: torch.Tensor
+    valid: torch.Tensor
+
+
 @dataclass
 class MovingNavigationConfig(NavigationConfig):
     """Navigation settings plus the moving stones.
@@ -90,27 +106,28 @@ class MovingNavigationEnv(NavigationEnv):
                                   for i, m in enumerate(meta.get(MOVING_KEY, []))]
         return self._motions[key]
 
-    def moving_states(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every agent's scene's moving obstacles at ``sim_time``, padded to the most any scene has:
-        positions and velocities ``(N, M, 3)``, bounding radii ``(N, M)``, and a validity mask ``(N, M)``."""
+    def moving_states(self) -> MovingStates:
+        """Every agent's scene's moving obstacles at ``sim_time``, padded to the most any scene has."""
         slots = self.agent_scene.cpu().numpy()
         per_slot = {int(s): self.scene_motions(int(s)) for s in np.unique(slots)}
         m = max(1, max(len(v) for v in per_slot.values()))
         n = self.num_envs
-        pos, vel = np.zeros((n, m, 3)), np.zeros((n, m, 3))
+        pos, vel, acc = np.zeros((n, m, 3)), np.zeros((n, m, 3)), np.zeros((n, m, 3))
         radius, valid = np.zeros((n, m)), np.zeros((n, m), bool)
         for slot, motions in per_slot.items():
             rows = slots == slot
             for k, (motion, r) in enumerate(motions):
                 st = motion.state(self.sim_time)
-                pos[rows, k], vel[rows, k], radius[rows, k], valid[rows, k] = st.position, st.velocity, r, True
+                pos[rows, k], vel[rows, k], acc[rows, k] = st.position, st.velocity, st.acceleration
+                radius[rows, k], valid[rows, k] = r, True
         as_t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=self.device)  # noqa: E731
-        return as_t(pos), as_t(vel), as_t(radius), torch.as_tensor(valid, device=self.device)
+        return MovingStates(as_t(pos), as_t(vel), as_t(acc), as_t(radius), torch.as_tensor(valid, device=self.device))
 
     def moving_observation(self) -> torch.Tensor:
         """``(N, 7K)``: the K nearest moving obstacles, relative, in the body frame (module docstring)."""
         s, k = self.state, self.config.moving_nearest
-        pos, vel, radius, valid = self.moving_states()
+        moving = self.moving_states()
+        pos, vel, radius, valid = moving.position, moving.velocity, moving.radius, moving.valid
         rel_pos = pos - s.pos[:, None, :]
         rel_vel = vel - s.vel[:, None, :]
         gap = torch.where(valid, rel_pos.detach().norm(dim=2) - radius, torch.full_like(radius, float("inf")))
