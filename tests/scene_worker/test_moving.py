@@ -127,6 +127,10 @@ def test_render_scenes_places_each_item_at_its_own_time():
             np.testing.assert_array_equal(result["seg"], want["seg"])
         with pytest.raises(ConfigError, match="time=nan must be a finite number"):
             renderers[0].render(_poses_at(scene, 0.0), time=float("nan"))
+        with pytest.raises(ConfigError, match="time='1' must be a finite number"):   # checked before any render
+            render_scenes([(renderers[0], _poses_at(scene, 0.0), False, 0.0), (renderers[1], _poses_at(scene, 0.0), False, "1")])
+        with pytest.raises(ConfigError, match="time=inf must be a finite number"):
+            ObstacleQueries(scene).query(np.zeros((1, 3)), 1.0, time=float("inf"))
     finally:
         for r in renderers:
             r.close()

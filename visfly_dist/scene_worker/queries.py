@@ -54,6 +54,7 @@ from embreex.mesh_construction import TriangleMesh
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.scene_worker import render_native
+from visfly_dist.scene_worker.render_base import checked_time
 from visfly_dist.scenes.scene import Scene, SceneObject
 from visfly_dist.scenes.solids import solid_components
 
@@ -167,12 +168,11 @@ class ObstacleQueries:
         positions = _check_positions(positions)
         if not (np.isfinite(search_radius) and search_radius >= 0):
             raise ConfigError(f"search_radius={search_radius!r} must be a finite number >= 0")
-        if not (isinstance(time, (int, float, np.floating, np.integer)) and np.isfinite(time)):
-            raise ConfigError(f"time={time!r} must be a finite number of seconds")
+        time = checked_time(time)
         dist, points = self._closest(positions)
         inside = self._inside(positions, dist)
         for sub, motion, radius, _ in self._moving:
-            offset = motion.position(float(time))
+            offset = motion.position(time)
             local = positions - offset
             # only where the object can be nearer than the best so far (or hold the point inside)
             near = np.flatnonzero(np.linalg.norm(local, axis=1) - radius <= dist)

@@ -118,12 +118,11 @@ class Renderer(abc.ABC):
 
     def place(self, time: float) -> None:
         """Put the moving obstacles where they are at ``time`` (s); nothing to do in a static scene."""
-        if not (isinstance(time, (int, float, np.floating, np.integer)) and np.isfinite(time)):
-            raise ConfigError(f"time={time!r} must be a finite number of seconds")
+        time = checked_time(time)
         moving = self.scene.moving_objects
-        if moving and self._placed_at != float(time):
-            self._move(np.stack([o.motion.position(float(time)) for o in moving]))
-            self._placed_at = float(time)
+        if moving and self._placed_at != time:
+            self._move(np.stack([o.motion.position(time) for o in moving]))
+            self._placed_at = time
 
     def _move(self, translations: np.ndarray) -> None:
         """Backend work: place moving object ``k`` (scene order) at ``translations[k]`` ``(m, 3)``."""
@@ -168,6 +167,13 @@ class Renderer(abc.ABC):
         return max((o.object_id for o in self.scene.objects), default=0)
 
 
+def checked_time(time: object) -> float:
+    """A simulation time as a float; ConfigError unless it is a finite number of seconds."""
+    if isinstance(time, bool) or not isinstance(time, (int, float, np.floating, np.integer)) or not np.isfinite(time):
+        raise ConfigError(f"time={time!r} must be a finite number of seconds")
+    return float(time)
+
+
 def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
     """Render several scenes at once: one result per item, as ``renderer.render(poses, show_drones, time)``.
 
@@ -183,15 +189,16 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
     Returns:
         ``[{camera.name: (n, C, H, W) array}]``, in the order of ``items``.
     """
-    checked = [(r, r._checked_poses(poses, show), bool(show), float(time[0]) if time else 0.0)
+    checked = [(r, r._checked_poses(poses, show), bool(show), checked_time(time[0]) if time else 0.0)
                for r, poses, show, *time in items]
     results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
     plans, later, joint_time = [], [], {}
     for k, (r, poses, show, time) in enumerate(checked):
-        if len(poses) and getattr(r, "tracer", None) == "native" and joint_time.setdefault(id(r), time) == time:
+        native = len(poses) and getattr(r, "tracer", None) == "native"
+        if native and (joint_time.setdefault(id(r), time) == time or not r.scene.moving_objects):
             r.place(time)
             plans.append((k, r, r._plan(poses, show)))
-        elif len(poses) and getattr(r, "tracer", None) == "native":
+        elif native:
             later.append(k)
         else:
             results[k] = r.render(poses, show, time)
