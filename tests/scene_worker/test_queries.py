@@ -190,9 +190,9 @@ def test_several_scenes_in_one_call_answer_as_each_scene_alone(backend):
         scenes.append(Scene(f"s{k}", [SceneObject("box", 1, box)], np.array([[-9, -9, -9], [9, 9, 9]])))
     scenes.append(Scene("empty", [], np.array([[0, 0, 0], [1, 1, 1]])))
     queries = [ObstacleQueries(s, drone_radius=r, backend=backend) for s, r in zip(scenes, (0.1, 0.3, 0.2, 0.1))]
-    items = [(q, rng.uniform(-3, 3, size=(n, 3))) for q, n in zip(queries, (7, 0, 12, 3))]
+    items = [(q, rng.uniform(-3, 3, size=(n, 3)), 0.0) for q, n in zip(queries, (7, 0, 12, 3))]
     together = query_scenes(items, 2.0)
-    alone = [q.query(p, 2.0) for q, p in items]
+    alone = [q.query(p, 2.0) for q, p, _ in items]
     for field in ("collision", "inside", "nearest", "distance"):
         expected = np.concatenate([getattr(a, field) for a in alone])
         np.testing.assert_array_equal(getattr(together, field), expected, err_msg=field)

@@ -107,7 +107,7 @@ def test_bad_task_exits_2_with_one_line(tmp_path: Path) -> None:
     proc = run_cli("train", "hovr", "--out", str(tmp_path / "x"))
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["visfly-dist train: error: unknown task 'hovr'; valid tasks: "
-                                                "navigation, hover, landing, gap_crossing, racing, tracking"]
+                                                "navigation, hover, landing, gap_crossing, racing, tracking, navigation_moving"]
     assert not (tmp_path / "x").exists()
 
 

@@ -242,18 +242,19 @@ class Aggregator:
 
     # ----- one step --------------------------------------------------------------------------
 
-    def observe(self, poses: np.ndarray, agents: np.ndarray | None = None) -> Observation:
+    def observe(self, poses: np.ndarray, agents: np.ndarray | None = None, sim_time: float = 0.0) -> Observation:
         """Render every camera and query obstacles for the given agents (submit + collect).
 
         Args:
             poses: ``(N, 7)`` rows ``[x, y, z, qw, qx, qy, qz]`` of every agent, or ``(k, 7)``
                 rows of ``agents`` only.
             agents: indices of the agents to observe (default: all, in order).
+            sim_time: simulation time, s (where moving obstacles are), as in :meth:`submit`.
         """
-        return self.collect(self.submit(poses, agents))[0]
+        return self.collect(self.submit(poses, agents, sim_time=sim_time))[0]
 
     def submit(self, poses: np.ndarray, agents: np.ndarray | None = None, spawn_poses: np.ndarray | None = None,
-               spawn_agents: np.ndarray | None = None) -> StepTicket:
+               spawn_agents: np.ndarray | None = None, sim_time: float = 0.0) -> StepTicket:
         """Send one request per worker for ``agents`` (and the spawn poses of ``spawn_agents``); no wait.
 
         Args:
@@ -262,6 +263,8 @@ class Aggregator:
             spawn_poses: ``(m, 7)`` poses at which to render ``spawn_agents`` too (their next episode's
                 start), in the same requests.
             spawn_agents: ``(m,)`` agent indices (each agent's own scene is used).
+            sim_time: simulation time, s, sent with every scene entry: where moving obstacles are drawn
+                and queried (0: left off the wire, the workers take 0).
         """
         self._require_started()
         t_start = time.perf_counter()
@@ -279,8 +282,9 @@ class Aggregator:
             o_keys, o_counts, o_rows, o_slots = obs_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
             s_keys, s_counts, s_rows, _ = spawn_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
             poses_w = np.concatenate([rows[o_rows], spawn_rows[s_rows]])
+            times = np.full(len(o_keys) + len(s_keys), float(sim_time)) if sim_time else None
             message = step_message(o_keys + s_keys, np.array(o_counts + s_counts, np.int32), poses_w,
-                                   search_radius=self.search_radius)
+                                   search_radius=self.search_radius, times=times)
             requests.append((wid, message))
             parts.append((o_slots, o_rows, s_rows))
         t0 = time.perf_counter()

@@ -14,7 +14,8 @@ JSON rows: ``backend, tracer (raycast only), threads (raycast only), res, kind, 
 cpu_frames_per_s (in-process rows), where (in_process|worker), seconds``; one queries row
 ``backend="native"|"fcl", kind="queries", agents, queries_per_s, query_share_of_raycast_step``: the queries'
 share of a step that renders 64x64 depth with raycast and queries (``q / (render + q)``); and the
-goal rows of issue 8 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``.
+goal rows of issue 8 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``; and the
+moving-obstacle rows of :mod:`visfly_dist.bench.moving` (``--moving N``, 20 by default).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
                  kinds: Sequence[str] = ("depth",), cameras: int = 100, reps: int = 3,
                  scene: str = "garage-stones", seed: int = 0, worker: bool = True, search_radius: float = 5.0,
                  threads: Sequence[int] = (1, 2), tracers: Sequence[str] | None = None,
-                 log: Callable[[str], None] = print) -> list[dict[str, Any]]:
+                 log: Callable[[str], None] = print, moving: int = 20) -> list[dict[str, Any]]:
     """Measure every backend x resolution x kind, in-process and (if ``worker``) through a worker.
 
     The raycast backend is measured with each tracer (native packets, embreex) on each thread count,
@@ -86,6 +87,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
         threads: raycast tracing threads to measure (the worker rows use the largest).
         tracers: raycast tracers to measure; default: ``native`` (when built) and ``embreex``.
         log: progress lines.
+        moving: moving obstacles of the moving-vs-static rows (:mod:`visfly_dist.bench.moving`); 0: none.
 
     Returns:
         The rows described in the module docstring, then the goal rows (:func:`goal_rows`).
@@ -125,6 +127,10 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
                  "query_share_of_raycast_step": tq.median / (tq.median + render_s) if render_s else None,
                  "where": "in_process", "seconds": tq.median})
     log(f"[bench render] obstacle queries: {rows[-1]['queries_per_s']:.0f} queries/s")
+    if moving:
+        from visfly_dist.bench.moving import moving_rows
+
+        rows += moving_rows(moving, cameras, max(reps, 3), seed, 64, search_radius, log)
 
     if worker:
         reason = _worker_unavailable()
@@ -359,6 +365,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true",
                         help=f"one timed call per figure, at most {QUICK_AGENTS} drones")
     parser.add_argument("--no-worker", dest="worker", action="store_false", help="skip the through-a-worker rows")
+    parser.add_argument("--moving", type=int, default=20, metavar="N",
+                        help="moving obstacles of the moving-vs-static rows (default 20; 0: skip them)")
     parser.add_argument("--search-radius", type=float, default=5.0, help="obstacle query search radius, metres")
     parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")
 
@@ -370,7 +378,8 @@ def run(args: argparse.Namespace) -> int:
     agents, reps = (min(args.agents, QUICK_AGENTS), 1) if args.quick else (args.agents, args.reps)
     started = time.perf_counter()
     rows = bench_render(args.backend, args.res, args.kinds, agents, reps, args.scene, args.seed, args.worker,
-                        args.search_radius, args.threads, args.tracers, log=lambda s: print(s, flush=True))
+                        args.search_radius, args.threads, args.tracers, log=lambda s: print(s, flush=True),
+                        moving=args.moving)
     print(report.text_table(rows))
     print(f"[bench render] done in {time.perf_counter() - started:.1f} s")
     if args.json:

@@ -161,6 +161,7 @@ class DroneEnvBase(VecEnv):
         self.agents_per_scene = config.agents_per_scene
         self._pending_actions: torch.Tensor | None = None
         self._t0 = time.time()
+        self.sim_time = 0.0   # s, ctrl_dt per step sent (of any group): where the moving obstacles are
 
     # ----- task hooks ---------------------------------------------------------------------------
 
@@ -284,8 +285,10 @@ class DroneEnvBase(VecEnv):
         agents = np.flatnonzero(members)
         spawn_agents = np.flatnonzero(~self._prepared & members)
         poses = self.state.pose().detach().cpu().numpy()
+        self.sim_time += self.config.ctrl_dt
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
-                                        spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents)
+                                        spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
+                                        sim_time=self.sim_time)
         return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0)
 
     def _finish(self, flight: _InFlight) -> StepResult:
@@ -437,7 +440,7 @@ class DroneEnvBase(VecEnv):
         self.reset_agents_hook(idx)
         missing = idx_np[~self._prepared[idx_np]]
         if len(missing):  # first reset, a swapped scene, or a failed worker: render now (a second round trip)
-            obs = self.aggregator.observe(self._start_poses(missing), agents=missing)
+            obs = self.aggregator.observe(self._start_poses(missing), agents=missing, sim_time=self.sim_time)
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
         self.frame = rows if observation is None else self.frame.scatter(idx, rows)
@@ -482,6 +485,7 @@ class DroneEnvBase(VecEnv):
     def _reseed(self, seed: int) -> None:
         self.generator.manual_seed(seed)
         self.aggregator.reseed(seed)
+        self.sim_time = 0.0   # the same seed starts the moving obstacles from the same places
 
     def step_async(self, actions: np.ndarray) -> None:
         self._pending_actions = torch.as_tensor(np.asarray(actions), dtype=torch.float32, device=self.device)

@@ -21,6 +21,7 @@ MAX_AGENTS_PER_REQUEST = 100_000
 MAX_CAMERAS = 16
 MAX_SCENES_PER_REQUEST = 1024
 MAX_SOURCE_CHARS = 4096
+MAX_TIME_S = 1e9
 
 
 @dataclass(frozen=True)
@@ -59,10 +60,12 @@ class UnloadScene:
 
 @dataclass(frozen=True)
 class ScenePoses:
-    """Poses of the agents in one scene: ``(n, 7)`` rows ``[x, y, z, qw, qx, qy, qz]`` (world)."""
+    """Poses of the agents in one scene: ``(n, 7)`` rows ``[x, y, z, qw, qx, qy, qz]`` (world), and
+    the scene's simulation time, s (where its moving obstacles are; 0 when the request has none)."""
 
     scene_key: str
     poses: np.ndarray
+    time: float = 0.0
 
     def to_message(self) -> dict[str, Any]:
         return {"scene_key": self.scene_key, "poses": np.ascontiguousarray(self.poses, dtype=np.float32)}
@@ -75,7 +78,9 @@ class StepRequest:
     On the wire the entries travel as one pose array: ``{"keys": [scene_key, ...], "counts": (m,)
     int32, "poses": (sum(counts), 7) f32}``; entry ``i`` owns the next ``counts[i]`` rows. A key may
     appear more than once (e.g. the spawn poses of a scene's reset agents next to its flying ones);
-    in multi-agent scenes the drones of one entry see each other.
+    in multi-agent scenes the drones of one entry see each other. Optional ``"times": (m,) f64``
+    gives each entry's simulation time in seconds (where the moving obstacles are drawn and
+    queried; absent: 0 for every entry): the worker keeps no clock of its own.
 
     Reply ``{"type": "step_result", "counts": (m,) int32, "images": {camera_name: (total, C, H, W)},
     "collision": (total,) bool, "inside": (total,) bool, "nearest": (total, 3) f32 world point,
@@ -93,16 +98,23 @@ class StepRequest:
         counts = np.array([len(s.poses) for s in self.scenes], dtype=np.int32)
         poses = np.concatenate([np.asarray(s.poses, dtype=np.float32).reshape(-1, 7) for s in self.scenes]) \
             if self.scenes else np.zeros((0, 7), np.float32)
+        times = np.array([s.time for s in self.scenes], dtype=np.float64)
         return step_message([s.scene_key for s in self.scenes], counts, poses, self.render, self.query,
-                            self.search_radius)
+                            self.search_radius, times if np.any(times != 0) else None)
 
 
 def step_message(keys: list[str], counts: np.ndarray, poses: np.ndarray, render: bool = True, query: bool = True,
-                 search_radius: float = 5.0) -> dict[str, Any]:
-    """A step request's wire map built straight from arrays (the aggregator's hot path)."""
-    return {"type": "step", "keys": keys, "counts": np.asarray(counts, dtype=np.int32),
-            "poses": np.ascontiguousarray(poses, dtype=np.float32), "render": bool(render), "query": bool(query),
-            "search_radius": float(search_radius)}
+                 search_radius: float = 5.0, times: np.ndarray | None = None) -> dict[str, Any]:
+    """A step request's wire map built straight from arrays (the aggregator's hot path).
+
+    ``times``: ``(len(keys),)`` simulation time of each entry, s; None leaves the field out (t = 0).
+    """
+    msg = {"type": "step", "keys": keys, "counts": np.asarray(counts, dtype=np.int32),
+           "poses": np.ascontiguousarray(poses, dtype=np.float32), "render": bool(render), "query": bool(query),
+           "search_radius": float(search_radius)}
+    if times is not None:
+        msg["times"] = np.ascontiguousarray(times, dtype=np.float64)
+    return msg
 
 
 def split_step_result(reply: Mapping[str, Any]) -> list[dict[str, Any]]:
@@ -162,7 +174,7 @@ REQUEST_FIELDS: dict[str, frozenset[str]] = {
     "unload_scene": frozenset({"scene_key"}),
     "load_scene": frozenset({"scene_key", "source", "cameras", "drone_radius", "multi_agent"}),
     "sample_spawn": frozenset({"scene_key", "n", "clearance", "distribution", "a", "b", "seed"}),
-    "step": frozenset({"keys", "counts", "poses", "render", "query", "search_radius"}),
+    "step": frozenset({"keys", "counts", "poses", "render", "query", "search_radius", "times"}),
 }
 """The fields each request type may carry besides ``version`` and ``type``; others are refused."""
 MAX_SEED = 2**63 - 1
@@ -293,7 +305,13 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
     poses = _poses(msg.get("poses"), what)
     if int(counts.sum()) != poses.shape[0]:
         raise ProtocolError(f"{what}: counts add up to {int(counts.sum())} but poses has {poses.shape[0]} rows")
+    times = msg.get("times", np.zeros(len(keys)))
+    if not isinstance(times, np.ndarray) or times.dtype.kind != "f" or times.shape != (len(keys),):
+        raise ProtocolError(f"{what}: times must be a float array of shape ({len(keys)},), one per key")
+    if not np.all(np.isfinite(times)) or np.any(np.abs(times) > MAX_TIME_S):
+        raise ProtocolError(f"{what}: times must be finite seconds within +-{MAX_TIME_S:g}")
     ends = np.cumsum(counts)
-    parsed = tuple(ScenePoses(key, poses[end - n:end]) for key, n, end in zip(keys, counts.tolist(), ends.tolist()))
+    parsed = tuple(ScenePoses(key, poses[end - n:end], t) for key, n, end, t
+                   in zip(keys, counts.tolist(), ends.tolist(), times.astype(np.float64).tolist()))
     radius = _finite(_get(msg, "search_radius", (int, float), what), "search_radius", 0.0, 1e4)
     return StepRequest(parsed, _flag(msg, "render", what), _flag(msg, "query", what), radius)

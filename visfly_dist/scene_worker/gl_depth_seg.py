@@ -2,7 +2,8 @@
 
 pyrender draws one node per object with several uniform uploads each, which on llvmpipe costs more
 than the rasterising, and its depth buffer is 24-bit and multisampled. This pass draws the whole
-scene with one indexed draw call (and every drone with one instanced call) into a single-sample
+scene with one indexed draw call (every drone with one instanced call, and each moving obstacle
+with a one-instance call at its offset) into a single-sample
 framebuffer, so every pixel is sampled at its centre. Its one ``RG32F`` attachment receives, per
 pixel, the eye-space z-depth computed in the fragment shader (exact in float32, no depth-buffer
 quantisation) and the object id.
@@ -120,7 +121,8 @@ class DepthSegPass:
     def __init__(self, scene: Scene, drone: tuple[np.ndarray, np.ndarray] | None) -> None:
         self._program = _link(VERTEX_SHADER, FRAGMENT_SHADER)
         self._uniforms = {name: GL.glGetUniformLocation(self._program, name) for name in ("view", "proj")}
-        objects = [o for o in scene.objects if len(o.mesh.faces)]
+        objects = [o for o in scene.static_objects if len(o.mesh.faces)]
+        self._moving = [(_Geometry(o.mesh.vertices, o.mesh.faces, None), o.object_id) for o in scene.moving_objects]
         self._scene = None
         if objects:
             starts = np.cumsum([0] + [len(o.mesh.vertices) for o in objects])
@@ -132,7 +134,7 @@ class DepthSegPass:
         self._targets: dict[tuple[int, int], tuple[int, int, int]] = {}
 
     def draw(self, camera: CameraSpec, view: np.ndarray, drones: np.ndarray,
-             drone_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+             drone_ids: np.ndarray, moving: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Render one camera.
 
         Args:
@@ -140,6 +142,7 @@ class DepthSegPass:
             view: ``(4, 4)`` world -> OpenGL-eye matrix of the camera.
             drones: ``(k, 3)`` centres of the drone spheres to draw.
             drone_ids: ``(k,)`` their segmentation ids.
+            moving: ``(m, 3)`` translations of the scene's moving objects (scene order); None: 0.
 
         Returns:
             ``(depth (H, W) float32, 0 where nothing; ids (H, W) uint16)``, row 0 at the top.
@@ -161,6 +164,9 @@ class DepthSegPass:
         GL.glUniformMatrix4fv(u["proj"], 1, GL.GL_TRUE, projection(camera).astype(np.float32))
         if self._scene is not None:
             self._scene.draw()
+        for k, (geometry, object_id) in enumerate(self._moving):   # one instance each, at its offset
+            offset = np.zeros(3) if moving is None else moving[k]
+            geometry.draw(np.array([[*offset, object_id]]))
         if self._drone is not None and len(drones):
             self._drone.draw(np.concatenate([drones, np.asarray(drone_ids)[:, None]], axis=1))
         GL.glBindVertexArray(0)
@@ -177,7 +183,7 @@ class DepthSegPass:
             GL.glDeleteFramebuffers(1, [fbo])
             GL.glDeleteRenderbuffers(2, [colour, depth])
         self._targets.clear()
-        for geometry in (self._scene, self._drone):
+        for geometry in (self._scene, self._drone, *(g for g, _ in self._moving)):
             if geometry is not None:
                 geometry.delete()
         GL.glDeleteProgram(self._program)

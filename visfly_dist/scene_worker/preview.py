@@ -115,7 +115,7 @@ def _top_down_map(ax, scene: Scene, eyes: np.ndarray) -> None:
 
     low, high = scene.bounds
     polygons, colors, heights = [], [], []
-    for obj in scene.objects:
+    for obj in scene.at_time(0.0).objects:   # moving obstacles where they are at t = 0 (as rendered)
         mesh = obj.mesh
         triangles = mesh.triangles
         below_ceiling = triangles[:, :, 2].min(axis=1) < high[2] - 1e-3
@@ -137,6 +137,10 @@ def _top_down_map(ax, scene: Scene, eyes: np.ndarray) -> None:
             ax.plot(*np.asarray(meta[key])[:2], marker, color="tab:red", ms=12, label=key)
     if "targets" in meta:
         ax.plot(*np.asarray(meta["targets"])[:, :2].T, "x", color="tab:red", ms=10, label="targets")
+    for k, obj in enumerate(scene.moving_objects):   # their paths, dotted
+        path = obj.motion.position(np.linspace(0.0, obj.motion.period, 201))[:, :2]
+        ax.plot(*path.T, ":", color="tab:orange", lw=1,
+                label="moving obstacle paths" if k == 0 else None)
     for i, eye in enumerate(eyes):
         ax.annotate(f"{i + 1}", eye[:2], color="white", ha="center", va="center",
                     bbox={"boxstyle": "circle", "fc": "tab:blue"})

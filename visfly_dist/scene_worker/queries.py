@@ -30,6 +30,15 @@ of any solid (half the smallest side of its bounding box) and inside some solid'
 Cost: the native query is one call per :meth:`ObstacleQueries.query`; FCL has no batched distance,
 so its fallback is one FCL call per position (the loop body kept to the call itself). Everything
 else (the inside test, the answer arithmetic) is vectorised over positions.
+
+Moving obstacles (translated copies of a local-frame mesh, :mod:`visfly_dist.scenes.scene`): the
+static objects are one set of structures as above, and each moving object has its own (nearest
+points and solids in its local frame, built once). A query at ``time`` moves the positions into
+each object's frame instead of moving the object, only for the positions that object can matter
+to (within its bounding radius of the best distance so far), and keeps the nearest answer; a
+position inside any moving solid is inside. :meth:`ObstacleQueries.distance` (spawn clearance)
+treats each moving object as its whole swept path: points along the path, padded by its bounding
+radius.
 """
 
 from __future__ import annotations
@@ -40,12 +49,14 @@ from typing import Sequence
 
 import fcl
 import numpy as np
+from scipy.spatial import cKDTree
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.scene_worker import render_native
-from visfly_dist.scenes.scene import Scene
+from visfly_dist.scene_worker.render_base import checked_time
+from visfly_dist.scenes.scene import Scene, SceneObject
 from visfly_dist.scenes.solids import solid_components
 
 PARITY_DIRECTIONS = np.array([[0.5377, 0.2841, 0.7938], [-0.6712, 0.4395, -0.5968], [0.1832, -0.9127, 0.3651]])
@@ -54,6 +65,7 @@ CROSSING_STEP = 1e-4   # metres a parity ray moves past each surface it crosses
 BOX_CHECK_CHUNK = 1 << 20   # (position, component) pairs tested per bounding-box chunk
 ON_SURFACE_M = 1e-12   # an FCL distance below this is a point on a surface
 BACKENDS = ("auto", "native", "fcl")
+SWEEP_SPACING = 0.05   # metres between the points that stand for a moving obstacle's swept path
 POSITIONS_PER_THREAD = 1024   # native closest-point queries: fewer positions per thread cost more than they save
 
 
@@ -98,7 +110,10 @@ class ObstacleQueries:
         self.backend = "native" if native else "fcl"
         self.drone_radius = float(drone_radius)
         self._max_threads = min(8, len(os.sched_getaffinity(0)))
-        objects = [o for o in scene.objects if len(o.mesh.faces)]
+        self._moving = [(ObstacleQueries(Scene(o.name, [SceneObject(o.name, o.object_id, o.mesh)], scene.bounds),
+                                         drone_radius, backend), o.motion, o.bounding_radius,
+                         cKDTree(o.motion.path_points(SWEEP_SPACING))) for o in scene.moving_objects]
+        objects = [o for o in scene.static_objects if len(o.mesh.faces)]
         self._bvh = self._embree = self._native = None
         if not objects:
             return
@@ -143,27 +158,52 @@ class ObstacleQueries:
         TriangleMesh(self._embree, triangles.astype(np.float32))
         self._directions = (PARITY_DIRECTIONS / np.linalg.norm(PARITY_DIRECTIONS, axis=1, keepdims=True)).astype(np.float32)
 
-    def query(self, positions: np.ndarray, search_radius: float) -> QueryResult:
+    def query(self, positions: np.ndarray, search_radius: float, time: float = 0.0) -> QueryResult:
         """Nearest obstacle, distance, collision and inside-ness of drones centred at ``positions``.
 
         Args:
             positions: ``(n, 3)`` world positions of drone centres.
             search_radius: cap on the reported distance, metres (>= 0).
+            time: simulation time, s: where the moving obstacles are.
         """
         positions = _check_positions(positions)
         _check_search_radius(search_radius)
+        time = checked_time(time)
         dist, points = self._closest(positions)
-        return _answers(positions, dist, points, self._inside(positions, dist), self.drone_radius, search_radius)
+        inside = self._inside(positions, dist)
+        self._add_moving(positions, time, dist, points, inside)
+        return _answers(positions, dist, points, inside, self.drone_radius, search_radius)
+
+    def _add_moving(self, positions: np.ndarray, time: float, dist: np.ndarray, points: np.ndarray,
+                    inside: np.ndarray) -> None:
+        """Fold the moving obstacles at ``time`` into the static answers (arrays updated in place)."""
+        for sub, motion, radius, _ in self._moving:
+            offset = motion.position(time)
+            local = positions - offset
+            # only where the object can be nearer than the best so far (or hold the point inside)
+            near = np.flatnonzero(np.linalg.norm(local, axis=1) - radius <= dist)
+            if not len(near):
+                continue
+            d, p = sub._closest(local[near])
+            inside[near] |= sub._inside(local[near], d)
+            better = d < dist[near]
+            dist[near[better]] = d[better]
+            points[near[better]] = p[better] + offset
 
     def distance(self, positions: np.ndarray) -> np.ndarray:
         """Signed distance ``(n,)`` float64 from each point to the nearest obstacle surface.
 
         Negative inside a solid obstacle, ``inf`` in an empty scene (for spawn sampling:
-        a point is clear when ``distance > clearance + drone_radius``).
+        a point is clear when ``distance > clearance + drone_radius``). A moving obstacle counts
+        as its whole swept path (module docstring), so a spawn is clear of it at every time.
         """
         positions = _check_positions(positions)
         dist, _ = self._closest(positions)
-        return np.where(self._inside(positions, dist), -dist, dist)
+        signed = np.where(self._inside(positions, dist), -dist, dist)
+        for _, _, radius, path in self._moving:   # the swept path: path points padded by the reach
+            swept = path.query(positions)[0] - radius
+            signed = np.minimum(signed, swept)
+        return signed
 
     def _closest(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Unsigned distance to and world nearest point on any triangle, per position."""
@@ -236,22 +276,25 @@ class ObstacleQueries:
         return odd
 
 
-def query_scenes(items: Sequence[tuple[ObstacleQueries, np.ndarray]], search_radius: float) -> QueryResult:
+def query_scenes(items: Sequence[tuple[ObstacleQueries, np.ndarray, float]], search_radius: float) -> QueryResult:
     """:meth:`ObstacleQueries.query` of several scenes at once, rows concatenated in item order.
+
+    ``items``: ``(queries, positions (n, 3), time)`` per scene (the time places its moving obstacles).
 
     The nearest points of every native scene come from ONE native call; the inside test runs only
     for scenes with a position near a solid; the answer arithmetic is vectorised over all rows.
     So a worker holding many scenes of one drone each pays about what one scene of many drones costs.
     """
     _check_search_radius(search_radius)
-    counts = [len(p) for _, p in items]
-    positions = _check_positions(np.concatenate([np.asarray(p, np.float64).reshape(-1, 3) for _, p in items])
+    times = [checked_time(t) for _, _, t in items]
+    counts = [len(p) for _, p, _ in items]
+    positions = _check_positions(np.concatenate([np.asarray(p, np.float64).reshape(-1, 3) for _, p, _ in items])
                                  if items else np.zeros((0, 3)))
     ends = np.cumsum(counts)
     starts = ends - counts
     dist = np.full(len(positions), np.inf)
     points = positions.copy()
-    native = [k for k, (q, _) in enumerate(items) if q._native is not None and counts[k]]
+    native = [k for k, (q, _, _) in enumerate(items) if q._native is not None and counts[k]]
     if native:
         rows = np.concatenate([np.arange(starts[k], ends[k]) for k in native])
         group = np.repeat(np.arange(len(native), dtype=np.int32), [counts[k] for k in native])
@@ -259,13 +302,17 @@ def query_scenes(items: Sequence[tuple[ObstacleQueries, np.ndarray]], search_rad
         dist[rows], points[rows] = render_native.closest_many([items[k][0]._native for k in native], group,
                                                                positions[rows], threads)
     inside = np.zeros(len(positions), bool)
-    radius = np.repeat([q.drone_radius for q, _ in items], counts) if items else np.zeros(0)
-    for k, (q, _) in enumerate(items):
+    radius = np.repeat([q.drone_radius for q, _, _ in items], counts) if items else np.zeros(0)
+    for k, (q, _, _) in enumerate(items):
+        if not counts[k]:
+            continue
         rows = slice(starts[k], ends[k])
-        if q._native is None and counts[k]:
+        if q._native is None:
             dist[rows], points[rows] = q._closest(positions[rows])
-        if q._embree is not None and counts[k] and (dist[rows] <= q._max_depth).any():
+        if q._embree is not None and (dist[rows] <= q._max_depth).any():
             inside[rows] = q._inside(positions[rows], dist[rows])
+        if q._moving:
+            q._add_moving(positions[rows], times[k], dist[rows], points[rows], inside[rows])
     return _answers(positions, dist, points, inside, radius, search_radius)
 
 

@@ -14,6 +14,10 @@ With ``show_drones=True`` the other drones of the same call are drawn as spheres
 ``drone_radius`` (a camera never sees its own drone). Agent ``k`` of the call (its row in
 ``poses``) has segmentation id ``drone_segmentation_id(k) = 65535 - k``; scene object ids must stay
 below the ids of the drones in use.
+
+Moving obstacles are drawn where they are at the call's ``time`` (seconds of simulation time): a
+renderer keeps each moving object's mesh in its local frame and only translates it per call
+(:meth:`Renderer.place`), never rebuilding the static geometry.
 """
 
 from __future__ import annotations
@@ -93,13 +97,15 @@ class Renderer(abc.ABC):
         self.cameras = cameras
         self.drone_radius = float(drone_radius)
         self._closed = False
+        self._placed_at: float | None = None
 
-    def render(self, poses: np.ndarray, show_drones: bool = False) -> dict[str, np.ndarray]:
+    def render(self, poses: np.ndarray, show_drones: bool = False, time: float = 0.0) -> dict[str, np.ndarray]:
         """Render every camera of every drone.
 
         Args:
             poses: ``(n, 7)`` drone poses ``[x, y, z, qw, qx, qy, qz]`` in the world frame.
             show_drones: draw the other drones of this call (multi-agent scenes).
+            time: simulation time, s: where the moving obstacles are drawn.
 
         Returns:
             ``{camera.name: (n, C, H, W) array of camera.dtype}``.
@@ -107,7 +113,20 @@ class Renderer(abc.ABC):
         poses = self._checked_poses(poses, show_drones)
         if len(poses) == 0:
             return {c.name: np.zeros((0, *c.shape), c.dtype) for c in self.cameras}
+        self.place(time)
         return self._render(poses, bool(show_drones))
+
+    def place(self, time: float) -> None:
+        """Put the moving obstacles where they are at ``time`` (s); nothing to do in a static scene."""
+        time = checked_time(time)
+        moving = self.scene.moving_objects
+        if moving and self._placed_at != time:
+            self._move(np.stack([o.motion.position(time) for o in moving]))
+            self._placed_at = time
+
+    def _move(self, translations: np.ndarray) -> None:
+        """Backend work: place moving object ``k`` (scene order) at ``translations[k]`` ``(m, 3)``."""
+        raise NotImplementedError(f"the {self.name} renderer does not draw moving obstacles")
 
     def _checked_poses(self, poses: np.ndarray, show_drones: bool) -> np.ndarray:
         """``poses`` as float64 ``(n, 7)``; ConfigError if they (or the renderer) can't be rendered."""
@@ -148,33 +167,50 @@ class Renderer(abc.ABC):
         return max((o.object_id for o in self.scene.objects), default=0)
 
 
-def render_scenes(items: Sequence[tuple[Renderer, np.ndarray, bool]]) -> list[dict[str, np.ndarray]]:
-    """Render several scenes at once: one result per item, as ``renderer.render(poses, show_drones)``.
+def checked_time(time: object) -> float:
+    """A simulation time as a float; ConfigError unless it is a finite number of seconds."""
+    if isinstance(time, bool) or not isinstance(time, (int, float, np.floating, np.integer)) or not np.isfinite(time):
+        raise ConfigError(f"time={time!r} must be a finite number of seconds")
+    return float(time)
+
+
+def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
+    """Render several scenes at once: one result per item, as ``renderer.render(poses, show_drones, time)``.
 
     Raycast renderers on the native tracer are traced together in ONE native call (its threads spread
-    over every camera of every scene, the GIL released once); other renderers are called in turn.
-    Every item is validated before anything is rendered.
+    over every camera of every scene, the GIL released once); other renderers are called in turn,
+    and so is a renderer met again at another time than its first item's (it can be placed at one
+    time per trace). Every item is validated before anything is rendered.
 
     Args:
-        items: ``(renderer, poses (n, 7), show_drones)`` per scene.
+        items: ``(renderer, poses (n, 7), show_drones)`` or ``(renderer, poses, show_drones, time)``
+            per scene; ``time`` (s, default 0) places the moving obstacles, per item.
 
     Returns:
         ``[{camera.name: (n, C, H, W) array}]``, in the order of ``items``.
     """
-    checked = [(r, r._checked_poses(poses, show), bool(show)) for r, poses, show in items]
+    checked = [(r, r._checked_poses(poses, show), bool(show), checked_time(time[0]) if time else 0.0)
+               for r, poses, show, *time in items]
     results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
-    plans = []
-    for k, (r, poses, show) in enumerate(checked):
-        if len(poses) and getattr(r, "tracer", None) == "native":
+    plans, later, joint_time = [], [], {}
+    for k, (r, poses, show, time) in enumerate(checked):
+        native = len(poses) and getattr(r, "tracer", None) == "native"
+        if native and (joint_time.setdefault(id(r), time) == time or not r.scene.moving_objects):
+            r.place(time)
             plans.append((k, r, r._plan(poses, show)))
+        elif native:
+            later.append(k)
         else:
-            results[k] = r.render(poses, show)
+            results[k] = r.render(poses, show, time)
     if plans:
         from visfly_dist.scene_worker.render_native import trace
 
         trace([b for _, _, plan in plans for b in plan.batches], max(r.threads for _, r, _ in plans))
         for k, r, plan in plans:
             results[k] = r._finish(plan)
+    for k in later:
+        r, poses, show, time = checked[k]
+        results[k] = r.render(poses, show, time)
     return results  # type: ignore[return-value]
 
 

@@ -4,7 +4,8 @@ Depth and segmentation come from :class:`~visfly_dist.scene_worker.gl_depth_seg.
 whole scene in one draw call, single-sampled (pixel centres), z-depth computed per fragment in
 float32. RGB comes from pyrender with full materials and textures (multisampled, lit by the shared
 light of :mod:`render_base` plus ambient): one mesh node per textured object, and one node for all
-the untextured ones together (pyrender's cost is per node).
+the untextured ones together (pyrender's cost is per node), and one node per moving obstacle, posed
+at its translation on every render (depth and segmentation draw it at the same offset).
 
 Other drones are spheres (an icosphere within 1.8% of ``drone_radius``, exact at its vertices),
 culled to the view; the camera's own drone is left out of its image.
@@ -70,6 +71,12 @@ class EglRenderer(Renderer):
         self._rgb_scene: pyrender.Scene | None = None
         self._rgb_drones: list[pyrender.Node] = []
         self._rgb_cameras: dict[str, pyrender.Node] = {}
+        self._rgb_moving: list[pyrender.Node] = []
+        self._translations = np.zeros((len(scene.moving_objects), 3))
+
+    def _move(self, translations: np.ndarray) -> None:
+        """Moving objects: offsets of their draw calls (depth/segmentation) and node poses (RGB)."""
+        self._translations = translations
 
     def _release(self) -> None:
         if self._depth_seg is None and self._rgb is None:
@@ -98,7 +105,7 @@ class EglRenderer(Renderer):
                     images[a] = self._draw_rgb(cam, pose, centres, others)
                 else:
                     depth, ids = self._pass().draw(cam, np.linalg.inv(pose), centres[others],
-                                                   drone_segmentation_id(np.nonzero(others)[0]))
+                                                   drone_segmentation_id(np.nonzero(others)[0]), self._translations)
                     images[a, 0] = np.where(depth > 0, depth, cam.far) if cam.kind == "depth" else ids
             out[cam.name] = images
         return out
@@ -117,6 +124,8 @@ class EglRenderer(Renderer):
         camera_node = self._rgb_cameras[cam.name]
         scene.main_camera_node = camera_node
         scene.set_pose(camera_node, pose)
+        for node, offset in zip(self._rgb_moving, self._translations):
+            scene.set_pose(node, trimesh.transformations.translation_matrix(offset))
         while len(self._rgb_drones) < len(centres):
             self._rgb_drones.append(scene.add(pyrender.Mesh.from_trimesh(self._sphere, smooth=False)))
         for k, node in enumerate(self._rgb_drones):
@@ -129,8 +138,15 @@ class EglRenderer(Renderer):
 
     def _build_rgb_scene(self) -> pyrender.Scene:
         scene = pyrender.Scene(bg_color=[*(np.asarray(SKY_RGB) / 255.0), 1.0], ambient_light=[AMBIENT] * 3)
-        textured = [o.mesh for o in self.scene.objects if len(o.mesh.faces) and o.mesh.visual.kind == "texture"]
-        coloured = [o.mesh for o in self.scene.objects if len(o.mesh.faces) and o.mesh.visual.kind != "texture"]
+        static = self.scene.static_objects
+        textured = [o.mesh for o in static if len(o.mesh.faces) and o.mesh.visual.kind == "texture"]
+        coloured = [o.mesh for o in static if len(o.mesh.faces) and o.mesh.visual.kind != "texture"]
+        for obj in self.scene.moving_objects:   # one node each, posed per render
+            mesh = obj.mesh
+            if mesh.visual.kind != "texture":
+                mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+                mesh.visual.face_colors = face_rgb(obj.mesh)
+            self._rgb_moving.append(scene.add(pyrender.Mesh.from_trimesh(mesh, smooth=False)))
         for mesh in textured:
             scene.add(pyrender.Mesh.from_trimesh(mesh, smooth=False))
         if coloured:  # one node for every untextured object: pyrender's cost is per node

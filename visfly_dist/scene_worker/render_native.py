@@ -4,7 +4,8 @@ The library is built at install time (``make -C visfly_dist/scene_worker/native`
 ``setup.sh``) against Debian's Embree 3. :func:`load_library` finds it, or says why not; the
 raycast backend then falls back to embreex. ``VISFLY_NATIVE_TRACER=0`` turns it off.
 
-A :class:`NativeScene` holds one scene's Embree BVH (built once). :func:`trace` renders a list of
+A :class:`NativeScene` holds one scene's Embree BVH (built once); a :class:`NativeInstancedScene`
+a scene with moving obstacles (the static BVH plus instances moved per call). :func:`trace` renders a list of
 :class:`Batch` es (one camera of many drones of one scene each) in ONE native call: the tracer's
 threads spread over every frame of every batch, and ctypes releases the GIL for the whole call.
 
@@ -26,7 +27,7 @@ import numpy as np
 from visfly_dist.errors import ConfigError
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
-LIBRARY_VERSION = 4
+LIBRARY_VERSION = 5
 DISABLE_ENV = "VISFLY_NATIVE_TRACER"
 
 _f32p = ctypes.POINTER(ctypes.c_float)
@@ -47,7 +48,9 @@ class _Batch(ctypes.Structure):
         ("vis_dist2", ctypes.c_void_p), ("radius", ctypes.c_double), ("focal", ctypes.c_double),
         ("right64", ctypes.c_void_p), ("down64", ctypes.c_void_p), ("drone", ctypes.c_void_p),
         ("rots64", ctypes.c_void_p), ("light_dir", ctypes.c_void_p), ("ambient", ctypes.c_double),
-        ("light", ctypes.c_void_p),
+        ("light", ctypes.c_void_p), ("prim_offsets", ctypes.c_void_p), ("moving", ctypes.c_void_p),
+        ("moving_count", ctypes.c_int32), ("moving_centres", ctypes.c_void_p), ("moving_bounds", ctypes.c_void_p),
+        ("moving_focal", ctypes.c_double),
     ]
 
 
@@ -68,6 +71,16 @@ def load_library() -> tuple[ctypes.CDLL | None, str]:
         lib.vf_scene_new.argtypes = [_f32p, ctypes.c_int64]
         lib.vf_scene_free.restype = None
         lib.vf_scene_free.argtypes = [ctypes.c_void_p]
+        lib.vf_instanced_new.restype = ctypes.c_void_p
+        lib.vf_instanced_new.argtypes = [_f32p, ctypes.POINTER(ctypes.c_int64), ctypes.c_int32]
+        lib.vf_instanced_free.restype = None
+        lib.vf_instanced_free.argtypes = [ctypes.c_void_p]
+        lib.vf_instanced_move.restype = ctypes.c_int
+        lib.vf_instanced_move.argtypes = [ctypes.c_void_p, _f32p]
+        lib.vf_instanced_scene.restype = ctypes.c_void_p
+        lib.vf_instanced_scene.argtypes = [ctypes.c_void_p]
+        lib.vf_instanced_moving.restype = ctypes.c_void_p
+        lib.vf_instanced_moving.argtypes = [ctypes.c_void_p]
         lib.vf_trace.restype = ctypes.c_int
         lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
         lib.vf_points_new.restype = ctypes.c_void_p
@@ -125,6 +138,68 @@ class NativeScene:
         if self.handle is not None:
             self._lib.vf_scene_free(self.handle)
             self.handle = None
+
+    def __del__(self) -> None:  # last resort; renderers call close()
+        self.close()
+
+
+class NativeInstancedScene:
+    """A scene with moving parts: Embree instances over per-part BVHs, moved by translations.
+
+    Part 0 is the static geometry (a plain BVH, built once, as a :class:`NativeScene`'s), parts 1..
+    the moving objects: instances of their local-frame BVHs (built once) in a top-level scene of
+    their own (``moving``); :meth:`move` sets their translations and re-commits that top level
+    only. The tracer traces the static part, then the instances. Hits report the triangle index in
+    the concatenation of the parts (``prim_offsets``), as a flat scene would.
+
+    Args:
+        triangles: ``(F, 3, 3)`` every part's triangles, part after part.
+        counts: ``(P,)`` triangles per part (a part may be empty).
+        bounds: ``(P - 1, 2, 3)`` each moving part's axis-aligned box ``[low, high]`` in its own frame
+            (tiles that no part's box can show in skip the instances).
+
+    Attributes:
+        centres: ``(P - 1, 3)`` float64 the moving parts' translations (where :meth:`move` put them).
+    """
+
+    def __init__(self, triangles: np.ndarray, counts: Sequence[int], bounds: np.ndarray) -> None:
+        self._lib = _lib()
+        self.handle: int | None = None
+        self._instanced: int | None = None
+        tris = np.ascontiguousarray(triangles, dtype=np.float32)
+        counts64 = np.ascontiguousarray(counts, dtype=np.int64)
+        if tris.ndim != 3 or tris.shape[1:] != (3, 3) or counts64.sum() != len(tris) or np.any(counts64 < 0):
+            raise ConfigError(f"triangles shape {tris.shape} must be (F, 3, 3) with F = sum(counts) = {counts64.sum()}")
+        self.parts = len(counts64)
+        self.prim_offsets = np.ascontiguousarray(np.concatenate([[0], np.cumsum(counts64)[:-1]]), dtype=np.int32)
+        self.bounds = np.ascontiguousarray(bounds, dtype=np.float64).reshape(-1, 2, 3)
+        self.centres = np.zeros((self.parts - 1, 3))
+        if self.bounds.shape != (self.parts - 1, 2, 3):
+            raise ConfigError(f"bounds shape {self.bounds.shape} must be ({self.parts - 1}, 2, 3), one box per moving part")
+        handle = self._lib.vf_instanced_new(tris.ctypes.data_as(_f32p), counts64.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+                                            self.parts)
+        if not handle:
+            raise _error(self._lib, f"building the instanced scene of {self.parts} parts, {len(tris)} triangles")
+        self._instanced = handle
+        self.handle = self._lib.vf_instanced_scene(handle)
+        self.moving = self._lib.vf_instanced_moving(handle)
+
+    def move(self, translations: np.ndarray) -> None:
+        """Place the moving parts 1..P-1: ``(P - 1, 3)`` translations."""
+        if self._instanced is None:
+            raise ConfigError("move() on a closed NativeInstancedScene")
+        t = np.ascontiguousarray(translations, dtype=np.float32)
+        if t.shape != (self.parts - 1, 3):
+            raise ConfigError(f"translations shape {t.shape} must be ({self.parts - 1}, 3)")
+        if self._lib.vf_instanced_move(self._instanced, t.ctypes.data_as(_f32p)) != 0:
+            raise _error(self._lib, "moving the instances")
+        self.centres = np.ascontiguousarray(translations, dtype=np.float64)
+
+    def close(self) -> None:
+        """Free the BVHs; idempotent."""
+        if self._instanced is not None:
+            self._lib.vf_instanced_free(self._instanced)
+            self._instanced = self.handle = self.moving = None
 
     def __del__(self) -> None:  # last resort; renderers call close()
         self.close()
@@ -252,9 +327,13 @@ class Batch:
         drones: the other drones to draw, or None.
         drone: ``(n, H, W)`` int32 output: the drone seen (``-1``: none), or None.
         light: ``(n, H, W)`` float64 output: brightness of the drone seen, or None (needs ``drones.rots``).
+
+    An instanced scene's batch also passes its ``prim_offsets``, its moving top-level scene and the
+    moving parts' boxes (all taken from the scene): tiles no box's image covers skip the moving
+    pass.
     """
 
-    scene: NativeScene
+    scene: "NativeScene | NativeInstancedScene"
     right: np.ndarray
     down: np.ndarray
     near: float
@@ -269,6 +348,7 @@ class Batch:
     drones: "Drones | None" = None
     drone: np.ndarray | None = None
     light: np.ndarray | None = None
+    focal: float = 0.0
 
     def to_struct(self) -> _Batch:
         n, h, w = self.depth.shape
@@ -292,6 +372,12 @@ class Batch:
         out = _Batch(self.scene.handle, n, w, h, float(self.near), float(self.far), ptr(self.right), ptr(self.down),
                      ptr(self.origins), ptr(self.rots), ptr(self.depth), ptr(self.prim), ptr(self.uv),
                      ptr(self.seg_table), ptr(self.seg))
+        if isinstance(self.scene, NativeInstancedScene):
+            sc = self.scene
+            assert sc.centres.dtype == np.float64 and sc.centres.shape == (sc.parts - 1, 3) and sc.centres.flags.c_contiguous
+            out.prim_offsets, out.moving = ptr(sc.prim_offsets), sc.moving
+            out.moving_count, out.moving_centres, out.moving_bounds = sc.parts - 1, ptr(sc.centres), ptr(sc.bounds)
+            out.moving_focal = float(self.focal)
         if d is not None:
             out.vis_offsets, out.vis_drone, out.vis_centre, out.vis_dist2 = (
                 ptr(d.offsets), ptr(d.index), ptr(d.centres), ptr(d.dist2))

@@ -1,7 +1,10 @@
 """The ``raycast`` backend: Embree primary rays through every pixel centre.
 
 One Embree scene holds every triangle of the scene; a triangle -> object id table gives
-segmentation. Two tracers give the same depth (bit for bit) and the same triangle per pixel:
+segmentation. Moving obstacles: the native tracer keeps the static BVH and traces the moving
+objects as Embree instances after it (per-call translations, only their top-level scene
+re-committed; :class:`~render_native.NativeInstancedScene`); embreex keeps the static BVH and
+builds a small one of the moving objects' translated triangles per call, the nearer hit winning. Two tracers give the same depth (bit for bit) and the same triangle per pixel:
 
 - ``native`` (the fast path): :mod:`render_native`'s packet tracer, 16 rays per call on 4x4 pixel
   tiles, its own threads over every frame of a call, the GIL released once per call;
@@ -44,6 +47,17 @@ log = logging.getLogger(__name__)
 
 RAYS_PER_CHUNK = 1 << 15
 TRACERS = ("native", "embreex")
+
+
+def _embreex_scene(triangles: np.ndarray):
+    """An embreex scene of ``(F, 3, 3)`` float32 triangles, its BVH built now."""
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, triangles)
+    scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
+    return scene
 
 
 def lambert(normals: np.ndarray) -> np.ndarray:
@@ -109,42 +123,56 @@ class RaycastRenderer(Renderer):
         if tracer == "native" and not render_native.available():
             raise ConfigError(f"tracer 'native' is unavailable: {render_native.load_library()[1]}")
         self.threads = threads
-        meshes = [o.mesh for o in scene.objects if len(o.mesh.faces)]
+        # Triangle order: the static objects', then each moving object's (local frame), in scene order.
+        objects = [o for o in scene.static_objects + scene.moving_objects if len(o.mesh.faces)]
+        meshes = [o.mesh for o in objects]
         triangles = (np.concatenate([m.triangles for m in meshes]) if meshes else np.zeros((0, 3, 3))).astype(np.float32)
         self._object_ids = np.concatenate(
-            [np.zeros(1, np.uint16)] + [np.full(len(o.mesh.faces), o.object_id, np.uint16) for o in scene.objects])
+            [np.zeros(1, np.uint16)] + [np.full(len(o.mesh.faces), o.object_id, np.uint16) for o in objects])
+        moving = scene.moving_objects
+        self._part_counts = [sum(len(o.mesh.faces) for o in scene.static_objects)] + [len(o.mesh.faces) for o in moving]
         self._shader = SurfaceShader(meshes) if any(c.kind == "rgb" for c in self.cameras) else None
         self._rays = {c.name: pixel_rays(c) for c in self.cameras}
         self._slopes = {c.name: tuple(s.astype(np.float32) for s in pixel_slopes(c)) for c in self.cameras}
-        self._native = self._embree = self._pool = None
+        self._native = self._embree = self._embree_moving = self._pool = None
         self.tracer = tracer or default_tracer()[0]
         if self.tracer == "native":
             try:
-                self._native = render_native.NativeScene(triangles)
+                self._native = (render_native.NativeInstancedScene(triangles, self._part_counts,
+                                                                   np.array([o.mesh.bounds for o in moving]))
+                                if moving else render_native.NativeScene(triangles))
             except RuntimeError as exc:
                 if tracer == "native":
                     raise
                 log.warning("native tracer failed on scene %r (%s); using embreex", scene.name, exc)
                 self.tracer = "embreex"
         if self.tracer == "embreex":
-            self._init_embreex(triangles)
+            self._static_count = self._part_counts[0]
+            self._init_embreex(triangles[:self._static_count])
+            self._moving_triangles = triangles[self._static_count:]
+        if moving:
+            self.place(0.0)
 
     def _init_embreex(self, triangles: np.ndarray) -> None:
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
         if len(triangles):
-            self._embree = rtcore_scene.EmbreeScene()
-            TriangleMesh(self._embree, triangles)
-            self._embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # build the BVH now
+            self._embree = _embreex_scene(triangles)
         self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="raycast") if self.threads > 1 else None
+
+    def _move(self, translations: np.ndarray) -> None:
+        """Native: new instance transforms (the top-level BVH only). embreex: a fresh BVH of the
+        moving objects' triangles alone, translated (the static BVH is kept)."""
+        if self._native is not None:
+            self._native.move(translations)
+            return
+        shift = np.repeat(translations, self._part_counts[1:], axis=0).astype(np.float32)
+        self._embree_moving = _embreex_scene(self._moving_triangles + shift[:, None, :])
 
     def _release(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
         if self._native is not None:
             self._native.close()
-        self._pool = self._embree = self._native = None
+        self._pool = self._embree = self._embree_moving = self._native = None
 
     def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
         if self.tracer == "native":
@@ -181,7 +209,7 @@ class RaycastRenderer(Renderer):
                 seg=np.empty(shape, np.uint16) if cam.kind == "segmentation" else None,
                 drones=self._native_drones(cam, origins, rots, poses[:, :3]) if drawn else None,
                 drone=np.empty(shape, np.int32) if drawn and rgb else None,
-                light=np.empty(shape, np.float64) if drawn and rgb else None))
+                light=np.empty(shape, np.float64) if drawn and rgb else None, focal=cam.focal_px))
         return _Plan(poses, show_drones, batches)
 
     def _native_drones(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray,
@@ -249,7 +277,7 @@ class RaycastRenderer(Renderer):
                      np.zeros((n, m, 2), np.float32) if cam.kind == "rgb" else None)
         step = max(1, RAYS_PER_CHUNK // m)
         chunks = [slice(i, min(n, i + step)) for i in range(0, n, step)]
-        if self._embree is not None:
+        if self._embree is not None or self._embree_moving is not None:
             work = lambda s: self._trace_chunk(cam, origins[s], rots[s], hits, s)  # noqa: E731
             if self._pool is None or len(chunks) == 1:
                 for s in chunks:
@@ -270,8 +298,18 @@ class RaycastRenderer(Renderer):
         dirs = dirs.reshape(k, m, 3)
         starts = dirs * np.float32(cam.near)
         starts += origins.astype(np.float32)[:, None, :]
-        hits = self._embree.run(starts.reshape(-1, 3), dirs.reshape(-1, 3),
-                                dists=np.full(k * m, cam.far - cam.near, np.float32), output=1)
+        starts, dirs = starts.reshape(-1, 3), dirs.reshape(-1, 3)
+        hits = None
+        for scene, offset in ((self._embree, 0), (self._embree_moving, self._static_count)):
+            if scene is None:
+                continue
+            more = scene.run(starts, dirs, dists=np.full(k * m, cam.far - cam.near, np.float32), output=1)
+            more["primID"] = np.where(more["primID"] >= 0, more["primID"] + offset, -1)
+            if hits is None:
+                hits = more
+            else:   # the nearer hit wins (a miss has primID -1)
+                nearer = (more["primID"] >= 0) & ((hits["primID"] < 0) | (more["tfar"] < hits["tfar"]))
+                hits = {key: np.where(nearer, more[key], hits[key]) for key in ("primID", "tfar", "u", "v")}
         prim = hits["primID"].reshape(k, m)
         out.prim[s] = prim
         np.copyto(out.depth[s], np.where(prim >= 0, np.float32(cam.near) + hits["tfar"].reshape(k, m),

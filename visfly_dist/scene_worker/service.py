@@ -392,13 +392,14 @@ class SceneWorker:
             if any(scene.cameras != cameras for scene in loaded):
                 raise ProtocolError("the scenes of one step request must carry the same cameras")
             with self._timer.time("render", timings):
-                parts = render_scenes([(scene.renderer, item.poses, scene.multi_agent)
+                parts = render_scenes([(scene.renderer, item.poses, scene.multi_agent, item.time)
                                        for item, scene in zip(request.scenes, loaded)])
                 reply["images"] = {c.name: _concat([p[c.name] for p in parts], (0, *c.shape), c.dtype)
                                    for c in cameras}
         if request.query:
             with self._timer.time("query", timings):
-                answers = query_scenes([(scene.queries, item.poses[:, :3]) for item, scene in zip(request.scenes, loaded)],
+                answers = query_scenes([(scene.queries, item.poses[:, :3], item.time)
+                                        for item, scene in zip(request.scenes, loaded)],
                                        request.search_radius)
                 reply.update(collision=answers.collision, inside=answers.inside, nearest=answers.nearest,
                              distance=answers.distance)

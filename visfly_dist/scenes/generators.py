@@ -16,10 +16,12 @@ import numpy as np
 import trimesh
 
 from visfly_dist.errors import SceneError
-from visfly_dist.scenes.primitives import best_candidate, box, colored, shell_boxes, stone, to_float32_grid
+from visfly_dist.scenes.motion import Circle, Motion, Polygon, Spline
+from visfly_dist.scenes.primitives import best_candidate, box, colored, shell_boxes, sphere_hits_box, stone, to_float32_grid
 from visfly_dist.scenes.scene import Scene, SceneObject
 
-Parts = list[tuple[str, trimesh.Trimesh]]
+Parts = list[tuple]
+"""``(name, mesh)`` per static object, ``(name, mesh in its local frame, motion)`` per moving one."""
 Built = tuple[Parts, np.ndarray, dict[str, Any]]
 
 GENERATORS: dict[str, Callable[..., Scene]] = {}
@@ -32,6 +34,8 @@ MAX_STONE_DENSITY = 1.0
 MAX_PILLAR_DENSITY = 4.0
 """At most 4 pillars per m^2 of floor (1,008 pillars)."""
 MAX_OBSTACLE_RADIUS = 3.0
+MAX_MOVING = 100
+MAX_MOVING_SPEED = 20.0
 
 
 def generate_scene(kind: str, seed: int = 0, **params: Any) -> Scene:
@@ -84,7 +88,8 @@ def _register(kind: str) -> Callable[[Callable[..., Built]], Callable[..., Scene
                 raise SceneError(f"seed={seed!r} must be an int >= 0")
             values = {**defaults, **_coerce(kind, defaults, given)}
             parts, bounds, regions = build(np.random.default_rng(int(seed)), **values)
-            objects = [SceneObject(name, i, to_float32_grid(mesh)) for i, (name, mesh) in enumerate(parts, start=1)]
+            objects = [SceneObject(name, i, to_float32_grid(mesh), motion[0] if motion else None)
+                       for i, (name, mesh, *motion) in enumerate(parts, start=1)]
             metadata = {"kind": kind, "seed": int(seed), "params": {k: _plain(v) for k, v in values.items()}}
             metadata.update({k: _plain(v) for k, v in regions.items()})
             return Scene(format_spec(kind, int(seed), _coerce(kind, defaults, given)), objects, bounds, metadata)
@@ -157,6 +162,8 @@ def garage_stones(
     goal_center: tuple[float, ...] = (9.0, 0.0, 1.0),
     goal_half: tuple[float, ...] = (0.5, 0.5, 0.5),
     margin: float = 0.2,
+    moving: int = 0,
+    moving_speed: float = 1.0,
 ) -> Built:
     """An 18 x 14 x 5 m garage, bounds [0,-7,0]..[18,7,5], cluttered with random stones.
 
@@ -166,9 +173,14 @@ def garage_stones(
         start_center, start_half: start region (centre, half extents), kept clear of stones.
         goal_center, goal_half: goal region, kept clear of stones.
         margin: extra free space around both regions, m.
+        moving: number of moving stones (at most 100), each on a random circle, polygon or spline
+            (:mod:`visfly_dist.scenes.motion`) whose swept path keeps clear of both regions.
+        moving_speed: mean speed of the moving stones, m/s (each gets 0.7 to 1.3 times it).
 
     Metadata: ``start_region``, ``goal_region`` ([[low], [high]]), ``goal`` (the goal centre),
-    ``num_stones``. Objects: floor, ceiling, four walls, then ``stone_000``...
+    ``num_stones``, ``moving_objects`` (when ``moving`` > 0). Objects: floor, ceiling, four walls,
+    then ``stone_000``..., then ``moving_stone_000``... (drawn after the static stones, so ``moving``
+    leaves the rest of the scene as it was).
     """
     _check(0 <= density <= MAX_STONE_DENSITY, f"density={density} must be in [0, {MAX_STONE_DENSITY}] stones per m^3")
     _check(0 < min_radius <= max_radius <= MAX_OBSTACLE_RADIUS,
@@ -181,8 +193,42 @@ def garage_stones(
     centers = best_candidate(rng, radii, GARAGE_LOW, GARAGE_HIGH, keep_clear)
     parts = shell_boxes(GARAGE_LOW, GARAGE_HIGH)
     parts += [(f"stone_{i:03d}", stone(rng, c, r)) for i, (c, r) in enumerate(zip(centers, radii))]
+    _check(0 <= moving <= MAX_MOVING, f"moving={moving} must be in [0, {MAX_MOVING}]")
+    _check(0 < moving_speed <= MAX_MOVING_SPEED, f"moving_speed={moving_speed} must be in (0, {MAX_MOVING_SPEED}] m/s")
+    for i in range(moving):
+        radius = rng.uniform(min_radius, max_radius)
+        motion = _clear_path(rng, radius, moving_speed, keep_clear)
+        parts.append((f"moving_stone_{i:03d}", stone(rng, np.zeros(3), radius), motion))
     regions = {"start_region": start, "goal_region": goal, "goal": goal_center, "num_stones": count}
     return parts, np.array([GARAGE_LOW, GARAGE_HIGH]), regions
+
+
+def _clear_path(rng: np.random.Generator, radius: float, speed: float, keep_clear, rounds: int = 100) -> Motion:
+    """A random circle, polygon or spline inside the garage whose swept sphere misses ``keep_clear``."""
+    low, high = GARAGE_LOW + radius + 0.3, GARAGE_HIGH - radius - 0.3
+    for _ in range(rounds):
+        centre = rng.uniform(low, high)
+        kind = int(rng.integers(3))
+        speed_k = speed * rng.uniform(0.7, 1.3)
+        if kind == 0:
+            r = rng.uniform(1.0, 3.0)
+            centre[:2] = np.clip(centre[:2], low[:2] + r, high[:2] - r)
+            motion: Motion = Circle(centre, r, speed_k, phase=rng.uniform(0, 2 * np.pi))
+        else:
+            k = int(rng.integers(3, 6))
+            angles = np.sort(rng.uniform(0, 2 * np.pi, k))
+            reach = rng.uniform(1.0, 3.0, k)
+            points = centre + np.stack([reach * np.cos(angles), reach * np.sin(angles), rng.uniform(-0.5, 0.5, k)], axis=1)
+            points = np.clip(points, low, high)
+            if np.min(np.linalg.norm(np.roll(points, -1, axis=0) - points, axis=1)) < 0.1:
+                continue
+            motion = Polygon(points, speed_k) if kind == 1 else Spline(points, speed_k)
+        swept = motion.path_points(0.1)
+        if np.all((swept >= GARAGE_LOW + radius) & (swept <= GARAGE_HIGH - radius)) and not any(
+                sphere_hits_box(swept, radius, box_low, box_high).any() for box_low, box_high in keep_clear):
+            return motion
+    raise SceneError(f"no path for a moving stone of radius {radius:.2f} m clear of the regions {keep_clear}; "
+                     "shrink the regions or lower `moving`")
 
 
 @_register("gap-walls")

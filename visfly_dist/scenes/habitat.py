@@ -10,8 +10,10 @@ Read the way habitat-sim reads them (ReplicaCAD, HSSD, HM3D layouts; see docs/SC
   ``default_attributes`` (applied under every template of the section); ``configs[]`` inline
   entries ``{original_file, template_handle, attributes}`` (``original_file`` a config JSON or a
   mesh, ``attributes`` overriding it); and ``paths`` ``{".json": [dirs, files or globs]}`` of
-  ``*.stage_config.json`` / ``*.object_config.json`` files. A template name matches a handle
-  exactly, as a path suffix, or by file name, as habitat-sim's substring lookup does. Not defined
+  ``*.stage_config.json`` / ``*.object_config.json`` files (``".glb"`` and the other mesh suffixes:
+  mesh files, each its own template). A template name matches a handle
+  exactly, as a path suffix, or by file name, else the first handle (sorted) that contains it, as
+  habitat-sim's substring lookup (``getFullAttrNameFromStr``) does. Not defined
   there, ``<template>.<kind>_config.json`` is searched for under the dataset directory, and a
   template that names a mesh file is its own render asset.
 - A template's ``render_asset`` (relative to its config file) with ``scale``, ``up`` / ``front``
@@ -179,7 +181,8 @@ class _Dataset:
         return section if isinstance(section, dict) else {}
 
     def _find(self, kind: str, name: str) -> _Template | None:
-        """The template best matching ``name``: exact handle, then path suffix, then file name."""
+        """The template best matching ``name``: exact handle, then path suffix, then file name, then
+        the first handle (sorted) that holds ``name`` as a substring."""
         if kind not in self._templates:
             self._templates[kind] = self._inline(kind) + self._from_paths(kind)
         best, best_score = None, 0
@@ -189,6 +192,11 @@ class _Dataset:
                 best, best_score = template, score
         if best is not None:
             return best
+        # habitat-sim's getFullAttrNameFromStr: else the first handle (sorted) holding the name
+        key = _handle(name, kind)
+        holding = sorted((t for t in self._templates[kind] if key and key in t.handle), key=lambda t: t.handle)
+        if holding:
+            return holding[0]
         fallback = [self.dir / f"{name}.{kind}_config.json"]
         fallback.extend(sorted(self.dir.rglob(f"{Path(name).name}.{kind}_config.json")))
         for candidate in fallback:
@@ -225,19 +233,33 @@ class _Dataset:
         return out
 
     def _from_paths(self, kind: str) -> list[_Template]:
-        """Templates from the config files the section's ``paths`` ``.json`` entries list."""
-        patterns = self._section(kind).get("paths", {})
-        patterns = patterns.get(".json", []) if isinstance(patterns, dict) else []
-        suffix = f".{kind}_config.json"
-        files: list[Path] = []
-        for pattern in patterns if isinstance(patterns, list) else []:
-            found = sorted(self.dir.glob(pattern)) if any(c in pattern for c in "*?[") else [self.dir / pattern]
-            for item in found:
-                if item.is_dir():
-                    files.extend(sorted(item.glob(f"*{suffix}")))
-                elif item.is_file() and item.name.endswith(suffix):
-                    files.append(item)
-        return [self._file_template(kind, f) for f in dict.fromkeys(files) if self._allowed(f)]
+        """Templates from the section's ``paths``: the config files its ``.json`` entries list, and
+        the mesh files its mesh-suffix entries (``".glb": [...]``) list, each its own render asset."""
+        paths = self._section(kind).get("paths", {})
+        out: list[_Template] = []
+        for key, patterns in (paths.items() if isinstance(paths, dict) else []):
+            key = str(key).lower()
+            if key != ".json" and key not in MESH_SUFFIXES:
+                continue
+            suffix = f".{kind}_config.json" if key == ".json" else key
+            files: list[Path] = []
+            for pattern in patterns if isinstance(patterns, list) else []:
+                found = sorted(self.dir.glob(pattern)) if any(c in pattern for c in "*?[") else [self.dir / pattern]
+                for item in found:
+                    if item.is_dir():
+                        files.extend(sorted(item.glob(f"*{suffix}")))
+                    elif item.is_file() and item.name.lower().endswith(suffix):
+                        files.append(item)
+            for f in dict.fromkeys(files):
+                if not self._allowed(f):
+                    continue
+                if key == ".json":
+                    out.append(self._file_template(kind, f))
+                else:
+                    relative = f.relative_to(self.dir).as_posix() if f.is_relative_to(self.dir) else f.name
+                    out.append(_Template(_handle(relative, kind), {**self._defaults(kind), "render_asset": relative},
+                                         self.dir, str(f)))
+        return out
 
     def _file_template(self, kind: str, path: Path) -> _Template:
         handle = _handle(path.relative_to(self.dir).as_posix() if path.is_relative_to(self.dir) else path.name, kind)

@@ -8,6 +8,10 @@ A visfly scene directory holds ``scene.json``::
 and one mesh file per object under ``objects/``: binary PLY (float32 vertices, face or vertex
 colours) for coloured objects, GLB for textured ones. Coordinates are stored as they are in the
 scene (world, z-up): our own format never goes through the glTF y-up conversion.
+
+A moving obstacle's entry adds ``"motion"`` (a dict of :mod:`visfly_dist.scenes.motion`, e.g.
+``{"type": "circle", "centre": [5, 0, 1.5], "radius": 2, "speed": 1}``); its mesh file then holds the
+mesh in the object's local frame, placed at the motion's position at each instant.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import trimesh
 
 from visfly_dist.errors import SceneError
 from visfly_dist.scenes.habitat import SCENE_INSTANCE_SUFFIX, load_habitat_scene
+from visfly_dist.scenes.motion import motion_from_dict
 from visfly_dist.scenes.meshes import MESH_SUFFIXES, load_mesh_file, node_meshes, read_trimesh_scene
 from visfly_dist.scenes.paths import PathLike, check_inside, normalize_roots
 from visfly_dist.scenes.scene import Scene, SceneObject
@@ -45,7 +50,10 @@ def save_scene(scene: Scene, out_dir: PathLike) -> Path:
         textured = isinstance(obj.mesh.visual, trimesh.visual.TextureVisuals)
         relative = f"objects/{obj.object_id:04d}_{_safe(obj.name)}.{'glb' if textured else 'ply'}"
         obj.mesh.export(out / relative, file_type="glb" if textured else "ply")
-        entries.append({"name": obj.name, "id": obj.object_id, "mesh": relative})
+        entry = {"name": obj.name, "id": obj.object_id, "mesh": relative}
+        if obj.motion is not None:
+            entry["motion"] = obj.motion.to_dict()
+        entries.append(entry)
     document = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
@@ -109,10 +117,11 @@ def _load_visfly(path: Path, roots: Sequence[Path] | None) -> Scene:
             raise ValueError(f"object ids {ids} must be unique and >= 1")
         # Object files stay inside the scene directory even without configured roots.
         allowed = roots if roots is not None else [path.parent.resolve()]
-        for entry in document["objects"]:
+        for i, entry in enumerate(document["objects"]):
             mesh_path = path.parent / entry["mesh"]
             check_inside(mesh_path, allowed, "scene object mesh")
-            objects.append(SceneObject(str(entry["name"]), int(entry["id"]), _read_object_mesh(mesh_path, allowed)))
+            motion = motion_from_dict(entry["motion"], f"objects[{i}].motion") if "motion" in entry else None
+            objects.append(SceneObject(str(entry["name"]), int(entry["id"]), _read_object_mesh(mesh_path, allowed), motion))
         return Scene(str(document["name"]), objects, np.asarray(document["bounds"], dtype=np.float64), document.get("metadata", {}))
     except (KeyError, TypeError, ValueError) as exc:
         raise SceneError(f"malformed visfly scene file {str(path)!r}: {type(exc).__name__}: {exc}") from exc

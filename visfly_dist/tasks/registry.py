@@ -15,6 +15,7 @@ TASKS: dict[str, str] = {
     "gap_crossing": "visfly_dist.tasks.gap_crossing:GapCrossingEnv",
     "racing": "visfly_dist.tasks.racing:RacingEnv",
     "tracking": "visfly_dist.tasks.tracking:TrackingEnv",
+    "navigation_moving": "visfly_dist.tasks.navigation_moving:MovingNavigationEnv",
 }
 """Task name -> ``module:EnvClass``."""
 

@@ -35,7 +35,7 @@ MODES = {"both": (True, False), "deterministic": (True,), "sampled": (False,)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking")
+    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking, navigation_moving")
     parser.add_argument("--checkpoint", required=True, help="model .zip written by 'visfly-dist train'")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per mode (default 100)")
     parser.add_argument("--mode", choices=tuple(MODES), default="both",

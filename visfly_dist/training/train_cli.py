@@ -35,7 +35,7 @@ def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking")
+    parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking, navigation_moving")
     parser.add_argument("--timesteps", type=int, help="total env steps (default: per task)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: per task)")
     parser.add_argument("--workers", type=int, help="local scene workers to spawn (default: the env's)")
