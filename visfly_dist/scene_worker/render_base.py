@@ -34,6 +34,7 @@ import trimesh
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.scene_worker.camera_math import camera_world_poses
 from visfly_dist.scenes.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,7 @@ class Renderer(abc.ABC):
         scene: the scene drawn.
         cameras: the cameras mounted on every drone.
         drone_radius: radius of the sphere a drone is drawn as, metres.
+        moving: the scene's moving objects, in scene order.
     """
 
     name: str
@@ -98,6 +100,7 @@ class Renderer(abc.ABC):
         self.drone_radius = float(drone_radius)
         self._closed = False
         self._placed_at: float | None = None
+        self.moving = tuple(scene.moving_objects)   # scene order; looked up once (it is a scan of the objects)
 
     def render(self, poses: np.ndarray, show_drones: bool = False, time: float = 0.0) -> dict[str, np.ndarray]:
         """Render every camera of every drone.
@@ -119,9 +122,8 @@ class Renderer(abc.ABC):
     def place(self, time: float) -> None:
         """Put the moving obstacles where they are at ``time`` (s); nothing to do in a static scene."""
         time = checked_time(time)
-        moving = self.scene.moving_objects
-        if moving and self._placed_at != time:
-            self._move(np.stack([o.motion.position(time) for o in moving]))
+        if self.moving and self._placed_at != time:
+            self._move(np.stack([o.motion.position(time) for o in self.moving]))
             self._placed_at = time
 
     def _move(self, translations: np.ndarray) -> None:
@@ -193,11 +195,12 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
                for r, poses, show, *time in items]
     results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
     plans, later, joint_time = [], [], {}
+    mounts = _camera_poses_of_all(checked)
     for k, (r, poses, show, time) in enumerate(checked):
         native = len(poses) and getattr(r, "tracer", None) == "native"
-        if native and (joint_time.setdefault(id(r), time) == time or not r.scene.moving_objects):
+        if native and (joint_time.setdefault(id(r), time) == time or not r.moving):
             r.place(time)
-            plans.append((k, r, r._plan(poses, show)))
+            plans.append((k, r, r._plan(poses, show, mounts.get(k))))
         elif native:
             later.append(k)
         else:
@@ -212,6 +215,19 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
         r, poses, show, time = checked[k]
         results[k] = r.render(poses, show, time)
     return results  # type: ignore[return-value]
+
+
+def _camera_poses_of_all(checked: Sequence[tuple]) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
+    """Camera poses of the items whose renderers carry the first item's cameras, computed over all
+    their drones at once: item ``k`` -> ``[(origins, rotations)]`` per camera (its rows)."""
+    same = [k for k, (r, poses, _, _) in enumerate(checked) if len(poses) and r.cameras == checked[0][0].cameras]
+    if len(same) < 2:
+        return {}
+    poses = np.concatenate([checked[k][1] for k in same])
+    mounts = [camera_world_poses(poses, cam) for cam in checked[0][0].cameras]
+    ends = np.cumsum([len(checked[k][1]) for k in same])
+    return {k: [(o[end - len(checked[k][1]):end], m[end - len(checked[k][1]):end]) for o, m in mounts]
+            for k, end in zip(same, ends.tolist())}
 
 
 @functools.lru_cache(maxsize=1)

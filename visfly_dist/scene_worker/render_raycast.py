@@ -189,14 +189,18 @@ class RaycastRenderer(Renderer):
 
     # -- native tracer: plan (batches), trace (render_native.trace, maybe with other scenes), finish --
 
-    def _plan(self, poses: np.ndarray, show_drones: bool) -> _Plan:
-        """The native batches of validated, non-empty ``poses``: one per camera, outputs allocated."""
+    def _plan(self, poses: np.ndarray, show_drones: bool,
+              mounts: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> _Plan:
+        """The native batches of validated, non-empty ``poses``: one per camera, outputs allocated.
+
+        ``mounts``: each camera's ``camera_world_poses`` of ``poses``, if already computed.
+        """
         assert self.tracer == "native"
         n = len(poses)
         batches = []
         drawn = show_drones and n > 1 and self.drone_radius > 0
-        for cam in self.cameras:
-            origins, rots = camera_world_poses(poses, cam)
+        for c, cam in enumerate(self.cameras):
+            origins, rots = camera_world_poses(poses, cam) if mounts is None else mounts[c]
             shape = (n, cam.height, cam.width)
             right, down = self._slopes[cam.name]
             rgb = cam.kind == "rgb"
