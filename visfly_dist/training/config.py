@@ -69,10 +69,11 @@ class TrainConfig:
         threads: torch CPU threads of the training process while it steps the env (the scene
             workers use the other cores).
         update_threads: torch CPU threads during a PPO update, when the local workers sit idle
-            (plain PPO only); ``None``: every CPU this process may use. Measured on 2 cores: the
-            update 1.75x faster (8.0 s against 14.0 s per 8,192 steps) on an otherwise quiet
-            machine, but 3x slower under heavy outside load (OpenMP threads waiting for a core):
-            pass ``--update-threads 1`` on a busy machine.
+            (plain PPO only); ``None``: every CPU this process may use or one thread, whichever
+            the run's updates were timed faster with (re-timed every 8 updates). Measured on 2
+            cores: every CPU made the update 1.75x faster (8.0 s against 14.0 s per 8,192 steps)
+            on an otherwise quiet machine, but 3-10x slower under heavy outside load (OpenMP
+            threads waiting for a core).
         n_steps: rollout length per env between updates.
         batch_size: PPO minibatch size.
         lr: Adam learning rate.
@@ -147,7 +148,7 @@ class TrainConfig:
             out.append(f"workers={self.workers!r} must be an int >= 0")
         if self.update_threads is not None and (not isinstance(self.update_threads, int)
                                                 or isinstance(self.update_threads, bool) or self.update_threads < 1):
-            out.append(f"update_threads={self.update_threads!r} must be an int >= 1 or None (every CPU)")
+            out.append(f"update_threads={self.update_threads!r} must be an int >= 1 or None (timed choice)")
         if isinstance(self.n_steps, int) and isinstance(self.num_envs, int) and isinstance(self.batch_size, int):
             if self.batch_size > self.n_steps * self.num_envs:
                 out.append(

@@ -37,23 +37,29 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
+from visfly_dist.training.threads import UpdateThreadChooser
+
 
 class UpdateThreadsPPO(PPO):
     """Plain SB3 PPO that may give its update more torch threads (the scene workers are idle then),
     and reports its phase times.
 
     During rollouts torch stays at the thread count it was given (one, so it does not fight the
-    local workers for the cores); :meth:`train` sets ``update_threads`` (default: every CPU this
-    process may use).
+    local workers for the cores); :meth:`train` runs with ``update_threads`` threads, or, when it is
+    ``None``, with every CPU this process may use or one thread, whichever the updates so far ran
+    faster with (:class:`~visfly_dist.training.threads.UpdateThreadChooser`; logged as
+    ``train/update_threads``).
     """
 
     def __init__(self, *args: Any, update_threads: int | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self.update_threads = update_threads or len(os.sched_getaffinity(0))
+        self.update_threads = update_threads
+        self.thread_chooser = UpdateThreadChooser([update_threads] if update_threads
+                                                  else [len(os.sched_getaffinity(0)), 1])
         self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0}
 
     def _excluded_save_params(self) -> list[str]:
-        return super()._excluded_save_params() + ["phase_seconds"]
+        return super()._excluded_save_params() + ["phase_seconds", "thread_chooser"]
 
     def collect_rollouts(self, *args: Any, **kwargs: Any) -> bool:
         t0 = time.perf_counter()
@@ -64,13 +70,17 @@ class UpdateThreadsPPO(PPO):
 
     def train(self) -> None:
         rollout_threads = torch.get_num_threads()
-        torch.set_num_threads(self.update_threads)
+        threads = self.thread_chooser.next()
+        torch.set_num_threads(threads)
+        self.logger.record("train/update_threads", threads)
         t0 = time.perf_counter()
         try:
             super().train()
         finally:
             torch.set_num_threads(rollout_threads)
-            self.phase_seconds["update_s"] += time.perf_counter() - t0
+            seconds = time.perf_counter() - t0
+            self.thread_chooser.record(threads, seconds)
+            self.phase_seconds["update_s"] += seconds
 
 
 class OverlappedPPO(PPO):

@@ -1,0 +1,48 @@
+"""The timed choice of PPO's update threads (pure logic, fake timings)."""
+
+from __future__ import annotations
+
+import pytest
+
+from visfly_dist.errors import ConfigError
+from visfly_dist.training.threads import UpdateThreadChooser
+
+
+def run(chooser: UpdateThreadChooser, seconds_of: dict[int, float], updates: int) -> list[int]:
+    used = []
+    for _ in range(updates):
+        threads = chooser.next()
+        chooser.record(threads, seconds_of[threads])
+        used.append(threads)
+    return used
+
+
+def test_times_each_candidate_then_keeps_the_faster_and_retimes_the_other_now_and_then():
+    chooser = UpdateThreadChooser([2, 1], reprobe_every=4)
+    used = run(chooser, {2: 8.0, 1: 14.0}, 12)      # a quiet machine: 2 threads win
+    assert used[:2] == [2, 1]
+    assert used[2:] == [2, 2, 1, 2, 2, 2, 1, 2, 2, 2]
+    assert chooser.best == 2
+
+
+def test_follows_the_machine_when_outside_load_makes_more_threads_slower():
+    chooser = UpdateThreadChooser([2, 1], reprobe_every=4)
+    run(chooser, {2: 8.0, 1: 14.0}, 6)
+    used = run(chooser, {2: 77.0, 1: 20.0}, 8)       # other work arrives: one thread wins from the next retiming on
+    assert chooser.best == 1
+    assert used[0] == 2 and used[1] == 1        # one slow update with 2 threads, then one thread
+    assert used.count(2) == 3                   # that one, then a retiming every 4 updates
+
+
+def test_a_fixed_count_is_always_used():
+    chooser = UpdateThreadChooser([3])
+    assert run(chooser, {3: 1.0}, 10) == [3] * 10
+
+
+def test_bad_candidates_are_refused():
+    with pytest.raises(ConfigError):
+        UpdateThreadChooser([])
+    with pytest.raises(ConfigError):
+        UpdateThreadChooser([0, 1])
+    with pytest.raises(ConfigError):
+        UpdateThreadChooser([2, 1], reprobe_every=1)

@@ -1,0 +1,61 @@
+"""The torch thread count of PPO updates, chosen by timing the updates themselves.
+
+During an update the local scene workers sit idle, so the update may use every CPU. On a machine
+that other work keeps busy, it should not: OpenMP's threads wait at every barrier for a core, and
+a CNN update on 2 threads was measured 3-10x slower than on one (8 s quiet, 77 s at a load average
+of 6 on 2 cores, per 8,192 samples). The load is not known in advance and changes during a run,
+so :class:`UpdateThreadChooser` measures: it runs an update with each candidate, keeps the fastest,
+and tries the others again now and then.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from visfly_dist.errors import ConfigError
+
+REPROBE_EVERY = 8
+"""Every this many updates, the longest-unmeasured other candidate runs one update."""
+
+
+class UpdateThreadChooser:
+    """Picks each update's thread count from the measured seconds of earlier updates (pure logic).
+
+    Args:
+        candidates: thread counts to choose from (distinct, >= 1), the preferred one first.
+        reprobe_every: how often (in updates) a candidate other than the best is timed again.
+    """
+
+    def __init__(self, candidates: Sequence[int], reprobe_every: int = REPROBE_EVERY) -> None:
+        self.candidates = tuple(dict.fromkeys(int(c) for c in candidates))
+        if not self.candidates or min(self.candidates) < 1:
+            raise ConfigError(f"thread candidates {list(candidates)} must be non-empty and >= 1")
+        if reprobe_every < 2:
+            raise ConfigError(f"reprobe_every={reprobe_every} must be >= 2")
+        self.reprobe_every = reprobe_every
+        self.seconds: dict[int, float] = {}      # the latest update time of each candidate
+        self.measured_at: dict[int, int] = {}    # the update count at that time
+        self.updates = 0
+
+    @property
+    def best(self) -> int:
+        """The candidate with the fastest latest update (the first candidate before any timing)."""
+        timed = [c for c in self.candidates if c in self.seconds]
+        return min(timed, key=lambda c: self.seconds[c]) if timed else self.candidates[0]
+
+    def next(self) -> int:
+        """Threads for the coming update."""
+        untimed = [c for c in self.candidates if c not in self.seconds]
+        if untimed:
+            return untimed[0]
+        best = self.best
+        others = [c for c in self.candidates if c != best]
+        if others and self.updates % self.reprobe_every == 0:
+            return min(others, key=lambda c: self.measured_at[c])
+        return best
+
+    def record(self, threads: int, seconds: float) -> None:
+        """The update just run with ``threads`` took ``seconds``."""
+        self.updates += 1
+        self.seconds[threads] = float(seconds)
+        self.measured_at[threads] = self.updates
