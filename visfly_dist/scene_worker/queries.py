@@ -177,13 +177,16 @@ class ObstacleQueries:
     def _add_moving(self, positions: np.ndarray, time: float, dist: np.ndarray, points: np.ndarray,
                     inside: np.ndarray) -> None:
         """Fold the moving obstacles at ``time`` into the static answers (arrays updated in place)."""
-        for sub, motion, radius, _ in self._moving:
-            offset = motion.position(time)
+        if not self._moving or not len(positions):
+            return
+        offsets = np.stack([motion.position(time) for _, motion, _, _ in self._moving])
+        radii = np.array([radius for _, _, radius, _ in self._moving])
+        # (n, m): where object k can be nearer than the best so far (or hold the point inside)
+        reach = np.linalg.norm(positions[:, None, :] - offsets[None], axis=2) - radii <= dist[:, None]
+        for k in np.flatnonzero(reach.any(axis=0)).tolist():
+            sub, offset = self._moving[k][0], offsets[k]
             local = positions - offset
-            # only where the object can be nearer than the best so far (or hold the point inside)
-            near = np.flatnonzero(np.linalg.norm(local, axis=1) - radius <= dist)
-            if not len(near):
-                continue
+            near = np.flatnonzero(reach[:, k])
             d, p = sub._closest(local[near])
             inside[near] |= sub._inside(local[near], d)
             better = d < dist[near]
