@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -113,6 +115,25 @@ def test_tracking_target_moves_on_the_circle_and_rewards_closeness(envs):
     assert env.get_reward()[0] > 0.8 and env.get_reward()[1] < env.get_reward()[0] - 0.5
     place(env, [target[0], target[1] + (0.0, 0.0, 3.5)])
     assert env.out_of_bounds().tolist() == [False, True]
+
+
+def test_tracking_reward_pulls_hardest_across_the_success_radius(envs):
+    env = envs("tracking")
+    env.reset()
+    target = env.target().numpy()
+    rewards = []
+    for d in (0.0, 0.2, 0.4, 0.6, 1.0, 1.4):  # both agents d m beside the target, at rest
+        place(env, target + (0.0, d, 0.0))
+        rewards.append(env.get_reward()[0].item())
+    steps = -np.diff(rewards)  # reward lost per 0.2 m (the last two: per 0.4 m) farther out
+    assert np.all(steps > 0)  # strictly falls with distance
+    far = steps[4] / 2  # per 0.2 m from 1.0 to 1.4 m: about the linear term alone (0.1)
+    assert far < 0.12 and steps[1] > 3 * far and steps[2] > 3 * far  # steepest across the 0.5 m radius
+    # Matching the target's velocity pays over standing still at the same place.
+    place(env, target)
+    still = env.get_reward()
+    env.state = dataclasses.replace(env.state, vel=env.target_velocity())
+    assert np.all((env.get_reward() - still).numpy() > 0.1)
 
 
 def test_tracking_success_needs_the_target_held_to_the_end(envs):

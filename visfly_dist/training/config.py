@@ -28,7 +28,7 @@ TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     "landing": dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512),
     "gap_crossing": dict(num_envs=15, timesteps=150_000, n_steps=128, batch_size=480),
     "racing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512),
-    "tracking": dict(num_envs=16, timesteps=200_000, n_steps=128, batch_size=512),
+    "tracking": dict(num_envs=16, timesteps=250_000, n_steps=128, batch_size=512),
 }
 """Task-dependent defaults; tasks not listed here use ``FALLBACK_DEFAULTS``."""
 
