@@ -177,3 +177,26 @@ def test_tracking_reward_is_differentiable_through_the_dynamics():
             reward = env.step_tensor(actions).reward
         reward.sum().backward()
     assert actions.grad is not None and actions.grad.abs().sum() > 0
+
+
+def test_landing_rewards_a_soft_touchdown_on_the_pad_and_fails_a_hard_or_off_pad_one(envs):
+    env = envs("landing")
+    env.reset()
+    pad = env.pad[0].numpy()
+
+    def touch_down(positions, vz):
+        place(env, np.add(pad, positions))
+        env.state = dataclasses.replace(env.state, vel=torch.tensor([[0.0, 0.0, vz]] * 2))
+        env.update_task_state()  # the approach term measures from here, not from the last spawn
+        _, reward, done, infos = env.step(hover(env))
+        causes = [end_cause(i, i["episode"]["l"], env.config.max_episode_steps) if d else None for i, d in zip(infos, done)]
+        return reward, causes
+
+    # Both in contact range of the pad (its top at 0.01 m, drone radius 0.1 m): slow wins, fast crashes.
+    reward, causes = touch_down([[0.0, 0.0, 0.12], [0.1, 0.0, 0.12]], -0.1)
+    assert causes == ["success", "success"] and np.all(reward > 9)  # resting on the pad is a landing
+    reward, causes = touch_down([[0.0, 0.0, 0.12], [0.0, 0.0, 0.5]], -2.0)
+    assert causes == ["collision", None] and reward[0] < -4
+    # Slow, but beside the pad (0.6 m off its centre): a touch-down on the floor is a failure.
+    reward, causes = touch_down([[0.6, 0.0, 0.08], [0.0, 0.0, 0.5]], -0.1)
+    assert causes == ["collision", None] and reward[0] < -4
