@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -115,6 +117,25 @@ def test_tracking_target_moves_on_the_circle_and_rewards_closeness(envs):
     assert env.out_of_bounds().tolist() == [False, True]
 
 
+def test_tracking_reward_pulls_hardest_across_the_success_radius(envs):
+    env = envs("tracking")
+    env.reset()
+    target = env.target().numpy()
+    rewards = []
+    for d in (0.0, 0.2, 0.4, 0.6, 1.0, 1.4):  # both agents d m beside the target, at rest
+        place(env, target + (0.0, d, 0.0))
+        rewards.append(env.get_reward()[0].item())
+    steps = -np.diff(rewards)  # reward lost per 0.2 m (the last two: per 0.4 m) farther out
+    assert np.all(steps > 0)  # strictly falls with distance
+    far = steps[4] / 2  # per 0.2 m from 1.0 to 1.4 m: about the linear term alone (0.1)
+    assert far < 0.12 and steps[1] > 3 * far and steps[2] > 3 * far  # steepest across the 0.5 m radius
+    # Matching the target's velocity pays over standing still at the same place.
+    place(env, target)
+    still = env.get_reward()
+    env.state = dataclasses.replace(env.state, vel=env.target_velocity())
+    assert np.all((env.get_reward() - still).numpy() > 0.1)
+
+
 def test_tracking_success_needs_the_target_held_to_the_end(envs):
     env = envs("tracking")
     env.reset()
@@ -156,3 +177,26 @@ def test_tracking_reward_is_differentiable_through_the_dynamics():
             reward = env.step_tensor(actions).reward
         reward.sum().backward()
     assert actions.grad is not None and actions.grad.abs().sum() > 0
+
+
+def test_landing_rewards_a_soft_touchdown_on_the_pad_and_fails_a_hard_or_off_pad_one(envs):
+    env = envs("landing")
+    env.reset()
+    pad = env.pad[0].numpy()
+
+    def touch_down(positions, vz):
+        place(env, np.add(pad, positions))
+        env.state = dataclasses.replace(env.state, vel=torch.tensor([[0.0, 0.0, vz]] * 2))
+        env.update_task_state()  # the approach term measures from here, not from the last spawn
+        _, reward, done, infos = env.step(hover(env))
+        causes = [end_cause(i, i["episode"]["l"], env.config.max_episode_steps) if d else None for i, d in zip(infos, done)]
+        return reward, causes
+
+    # Both in contact range of the pad (its top at 0.01 m, drone radius 0.1 m): slow wins, fast crashes.
+    reward, causes = touch_down([[0.0, 0.0, 0.12], [0.1, 0.0, 0.12]], -0.1)
+    assert causes == ["success", "success"] and np.all(reward > 9)  # resting on the pad is a landing
+    reward, causes = touch_down([[0.0, 0.0, 0.12], [0.0, 0.0, 0.5]], -2.0)
+    assert causes == ["collision", None] and reward[0] < -4
+    # Slow, but beside the pad (0.6 m off its centre): a touch-down on the floor is a failure.
+    reward, causes = touch_down([[0.6, 0.0, 0.08], [0.0, 0.0, 0.5]], -0.1)
+    assert causes == ["collision", None] and reward[0] < -4

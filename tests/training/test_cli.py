@@ -26,7 +26,8 @@ def run_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("runs") / "hover-tiny"
-    proc = run_cli("train", "hover", "--timesteps", "512", "--checkpoint-every", "256", "--out", str(out), *TINY)
+    proc = run_cli("train", "hover", "--timesteps", "512", "--checkpoint-every", "256", "--log-std-init", "-0.5",
+                   "--out", str(out), *TINY)
     assert proc.returncode == 0, proc.stderr
     assert '"task": "hover"' in proc.stdout  # the full config is printed
     return out
@@ -35,6 +36,11 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_train_writes_config_checkpoints_logs_and_curve(trained_run: Path) -> None:
     config = json.loads((trained_run / "config.json").read_text())
     assert config["task"] == "hover" and config["num_envs"] == 4 and config["overrides"] == {"max_episode_steps": 20}
+    assert config["log_std_init"] == -0.5
+    from stable_baselines3 import PPO
+
+    log_std = PPO.load(trained_run / "final.zip", device="cpu").policy.log_std.detach()
+    assert log_std.shape == (4,) and (log_std + 0.5).abs().max() < 0.1  # started at -0.5, not SB3's 0
     assert (trained_run / "final.zip").is_file() and (trained_run / "final.norm.npz").is_file()
     assert sorted(p.name for p in (trained_run / "checkpoints").glob("*.zip")) == ["step_256.zip", "step_512.zip"]
     assert list(trained_run.glob("events.out.tfevents.*"))

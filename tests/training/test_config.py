@@ -23,12 +23,14 @@ def test_resolved_fills_task_defaults_and_validate_lists_every_problem() -> None
     cfg = TrainConfig(task="navigation", num_envs=4).resolved()
     assert cfg.num_envs == 4 and cfg.timesteps == TASK_DEFAULTS["navigation"]["timesteps"]
     assert cfg.out.startswith("runs/navigation-")
-    bad = TrainConfig(task="hover", num_envs=2, n_steps=8, batch_size=64, lr=2.0, backbone="vgg").resolved()
+    assert cfg.log_std_init == -1.0 and TrainConfig(task="hover").resolved().log_std_init == 0.0
+    assert TrainConfig(task="navigation", log_std_init=-0.5).resolved().log_std_init == -0.5
+    bad = TrainConfig(task="hover", num_envs=2, n_steps=8, batch_size=64, lr=2.0, backbone="vgg", log_std_init=9.0).resolved()
     with pytest.raises(ConfigError) as err:
         bad.validate()
     message = str(err.value)
     assert "batch_size=64 must be <= n_steps * num_envs = 16" in message
-    assert "lr=2.0" in message and "backbone='vgg'" in message
+    assert "lr=2.0" in message and "backbone='vgg'" in message and "log_std_init=9.0 must be a number in [-5, 2]" in message
     assert TrainConfig.from_dict(cfg.to_dict()) == cfg
 
 

@@ -14,8 +14,10 @@ ctrl_dt``), ``c`` the scene metadata's ``track_center`` when it has one, else ``
 Spawn: uniform in ``target(0) ± spawn_half_width`` ((0.3, 0.3, 0.2) m), 0.3 m clear.
 
 Reward per step (``d`` distance to the target, ``v_t`` the target's velocity), differentiable in the
-drone's state (BPTT/SHAC can use it): ``reward="ours"`` (default): ``1 - 0.5 d - 0.05 |v - v_t| -
-0.02 |omega|``, ``-fail_penalty`` (10) on failure. ``reward="visfly"`` (VisFly's TrackEnv):
+drone's state (BPTT/SHAC can use it): ``reward="ours"`` (default): ``1 - 0.5 d + near_weight *
+exp(-(d / near_sigma)^2) - 0.1 |v - v_t| - 0.02 |omega|``, ``-fail_penalty`` (10) on failure. The
+linear term pulls from afar; the Gaussian (weight 1, ``near_sigma`` 0.4 m) is steepest between 0.2
+and 0.6 m, so it pulls hard across the success radius, where the linear term alone is flat. ``reward="visfly"`` (VisFly's TrackEnv):
 ``0.1 - (0.1 / 9) d - 1e-5 |q - q_level| - 0.002 |v| - 0.002 |omega|``.
 
 Termination: success at the time limit when the drone stayed within ``success_distance`` (0.5 m)
@@ -57,6 +59,8 @@ class TrackingConfig(EnvConfig):
         hold_fraction: ... for this share of ``max_episode_steps`` at the end of the episode.
         max_distance: the episode fails (out of bounds) beyond this distance from the target, m.
         fail_penalty: reward subtracted on failure (``reward="ours"``).
+        near_weight: height of the Gaussian closeness term at the target (``reward="ours"``).
+        near_sigma: width of the Gaussian closeness term, m (``reward="ours"``).
         reward: ``ours`` or ``visfly`` (the original's reward).
     """
 
@@ -72,12 +76,14 @@ class TrackingConfig(EnvConfig):
     hold_fraction: float = 0.4
     max_distance: float = 3.0
     fail_penalty: float = 10.0
+    near_weight: float = 1.0
+    near_sigma: float = 0.4
     reward: str = "ours"
 
     def problems(self) -> list[str]:
         out = super().problems() + vec3_problem("path_center", self.path_center) + reward_problem(self.reward)
         out += vec3_problem("spawn_half_width", self.spawn_half_width, positive=True)
-        for name in ("path_radius", "future_dt", "success_distance", "max_distance"):
+        for name in ("path_radius", "future_dt", "success_distance", "max_distance", "near_sigma"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not value > 0:
                 out.append(f"{name}={value!r} must be a positive number")
@@ -85,6 +91,8 @@ class TrackingConfig(EnvConfig):
             out.append(f"path_speed={self.path_speed!r} must be a finite number of rad/s")
         if not isinstance(self.future_points, int) or self.future_points < 1:
             out.append(f"future_points={self.future_points!r} must be an int >= 1")
+        if not isinstance(self.near_weight, (int, float)) or not self.near_weight >= 0:
+            out.append(f"near_weight={self.near_weight!r} must be a number >= 0")
         if not isinstance(self.hold_fraction, (int, float)) or not 0 < self.hold_fraction <= 1:
             out.append(f"hold_fraction={self.hold_fraction!r} must be in (0, 1]")
         return out
@@ -171,8 +179,10 @@ class TrackingEnv(DroneEnvBase):
         s, d = self.state, self.distance()
         if self.config.reward == "visfly":
             return visfly_hover_reward(s.quat, s.vel, s.omega, d)
-        reward = 1.0 - 0.5 * d - 0.05 * (s.vel - self.target_velocity()).norm(dim=1) - 0.02 * s.omega.norm(dim=1)
-        return reward - self.config.fail_penalty * self.failure.float()
+        cfg = self.config
+        near = cfg.near_weight * torch.exp(-(d / cfg.near_sigma) ** 2)
+        reward = 1.0 - 0.5 * d + near - 0.1 * (s.vel - self.target_velocity()).norm(dim=1) - 0.02 * s.omega.norm(dim=1)
+        return reward - cfg.fail_penalty * self.failure.float()
 
     def update_task_state(self) -> None:
         self.held = self._held_now()

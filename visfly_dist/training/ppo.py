@@ -114,7 +114,7 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
         gae_lambda=cfg.gae_lambda,
         ent_coef=cfg.ent_coef,
         clip_range=cfg.clip_range,
-        policy_kwargs=visfly_policy_kwargs(cfg.backbone),
+        policy_kwargs={**visfly_policy_kwargs(cfg.backbone), "log_std_init": cfg.log_std_init},
         seed=cfg.seed,
         device=cfg.device,
         verbose=0,

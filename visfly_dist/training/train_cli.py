@@ -55,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr", type=float, default=3e-4, help="learning rate (default 3e-4)")
     parser.add_argument("--gamma", type=float, default=0.99, help="discount (default 0.99)")
     parser.add_argument("--ent-coef", type=float, default=0.0, help="entropy bonus (default 0)")
+    parser.add_argument("--log-std-init", type=float, help="initial log std of the action noise (default: per task)")
     parser.add_argument("--checkpoint-every", type=int, default=50_000, metavar="STEPS", help="0: only the final model")
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
@@ -102,6 +103,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         n_epochs=args.n_epochs,
         gamma=args.gamma,
         ent_coef=args.ent_coef,
+        log_std_init=args.log_std_init,
         checkpoint_every=args.checkpoint_every,
         backbone=args.backbone,
         normalize=not args.no_normalize,
