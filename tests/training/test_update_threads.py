@@ -17,21 +17,21 @@ def run(chooser: UpdateThreadChooser, seconds_of: dict[int, float], updates: int
     return used
 
 
-def test_times_each_candidate_then_keeps_the_faster_and_retimes_the_other_now_and_then():
+def test_times_each_candidate_then_keeps_the_faster_and_retimes_the_other_less_and_less():
     chooser = UpdateThreadChooser([2, 1], reprobe_every=4)
-    used = run(chooser, {2: 8.0, 1: 14.0}, 12)      # a quiet machine: 2 threads win
+    used = run(chooser, {2: 8.0, 1: 14.0}, 40)      # a quiet machine: 2 threads win
     assert used[:2] == [2, 1]
-    assert used[2:] == [2, 2, 1, 2, 2, 2, 1, 2, 2, 2]
+    retimings = [i for i, t in enumerate(used) if t == 1][1:]
+    assert retimings == [4, 13, 30]                   # gaps of 8 then 16: each retiming confirmed the choice
     assert chooser.best == 2
 
 
 def test_follows_the_machine_when_outside_load_makes_more_threads_slower():
     chooser = UpdateThreadChooser([2, 1], reprobe_every=4)
     run(chooser, {2: 8.0, 1: 14.0}, 6)
-    used = run(chooser, {2: 77.0, 1: 20.0}, 8)       # other work arrives: one thread wins from the next retiming on
-    assert chooser.best == 1
-    assert used[0] == 2 and used[1] == 1        # one slow update with 2 threads, then one thread
-    assert used.count(2) == 3                   # that one, then a retiming every 4 updates
+    used = run(chooser, {2: 77.0, 1: 20.0}, 20)      # other work arrives
+    assert used[0] == 2 and set(used[1:7]) == {1}     # one slow update with 2 threads, then one thread
+    assert used.count(2) <= 3 and chooser.best == 1
 
 
 def test_a_fixed_count_is_always_used():

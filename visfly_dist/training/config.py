@@ -77,7 +77,7 @@ class TrainConfig:
             workers use the other cores).
         update_threads: torch CPU threads during a PPO update, when the local workers sit idle
             (plain PPO only); ``None``: every CPU this process may use or one thread, whichever
-            the run's updates were timed faster with (re-timed every 8 updates). Measured on 2
+            the run's updates were timed faster with (re-timed after 8 updates, then less and less often). Measured on 2
             cores: every CPU made the update 1.75x faster (8.0 s against 14.0 s per 8,192 steps)
             on an otherwise quiet machine, but 3-10x slower under heavy outside load (OpenMP
             threads waiting for a core).

@@ -5,7 +5,9 @@ that other work keeps busy, it should not: OpenMP's threads wait at every barrie
 a CNN update on 2 threads was measured 3-10x slower than on one (8 s quiet, 77 s at a load average
 of 6 on 2 cores, per 8,192 samples). The load is not known in advance and changes during a run,
 so :class:`UpdateThreadChooser` measures: it runs an update with each candidate, keeps the fastest,
-and tries the others again now and then.
+and tries the others again now and then: after 8 updates, then twice as long each time a retiming
+confirms the choice (up to 64), and after 8 again when the choice changes. On a quiet machine the
+retimings cost a few percent of the update time; under outside load they save most of it.
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ from typing import Sequence
 from visfly_dist.errors import ConfigError
 
 REPROBE_EVERY = 8
-"""Every this many updates, the longest-unmeasured other candidate runs one update."""
+"""Updates before the first retiming of another candidate (and after the choice changes)."""
+MAX_REPROBE_EVERY = 64
+"""The longest interval between retimings, reached by doubling while the choice holds."""
 
 
 class UpdateThreadChooser:
@@ -23,7 +27,8 @@ class UpdateThreadChooser:
 
     Args:
         candidates: thread counts to choose from (distinct, >= 1), the preferred one first.
-        reprobe_every: how often (in updates) a candidate other than the best is timed again.
+        reprobe_every: updates until a candidate other than the best is timed again (doubled while
+            the choice holds, up to ``MAX_REPROBE_EVERY``).
     """
 
     def __init__(self, candidates: Sequence[int], reprobe_every: int = REPROBE_EVERY) -> None:
@@ -32,10 +37,11 @@ class UpdateThreadChooser:
             raise ConfigError(f"thread candidates {list(candidates)} must be non-empty and >= 1")
         if reprobe_every < 2:
             raise ConfigError(f"reprobe_every={reprobe_every} must be >= 2")
-        self.reprobe_every = reprobe_every
+        self.first_interval = self.interval = reprobe_every
         self.seconds: dict[int, float] = {}      # the latest update time of each candidate
         self.measured_at: dict[int, int] = {}    # the update count at that time
         self.updates = 0
+        self._since_retiming = 0
 
     @property
     def best(self) -> int:
@@ -50,12 +56,19 @@ class UpdateThreadChooser:
             return untimed[0]
         best = self.best
         others = [c for c in self.candidates if c != best]
-        if others and self.updates % self.reprobe_every == 0:
+        if others and self._since_retiming >= self.interval:
             return min(others, key=lambda c: self.measured_at[c])
         return best
 
     def record(self, threads: int, seconds: float) -> None:
         """The update just run with ``threads`` took ``seconds``."""
+        before = self.best
+        retiming = threads != before and threads in self.seconds
         self.updates += 1
         self.seconds[threads] = float(seconds)
         self.measured_at[threads] = self.updates
+        self._since_retiming += 1
+        if retiming:
+            self._since_retiming = 0
+            self.interval = (self.first_interval if self.best != before
+                             else min(2 * self.interval, max(MAX_REPROBE_EVERY, self.first_interval)))
