@@ -200,3 +200,27 @@ def test_landing_rewards_a_soft_touchdown_on_the_pad_and_fails_a_hard_or_off_pad
     # Slow, but beside the pad (0.6 m off its centre): a touch-down on the floor is a failure.
     reward, causes = touch_down([[0.6, 0.0, 0.08], [0.0, 0.0, 0.5]], -0.1)
     assert causes == ["collision", None] and reward[0] < -4
+
+
+@pytest.mark.parametrize("brake_weight", [0.0, 0.1])
+def test_landing_braking_term_pays_for_slowing_down_on_the_way_in(brake_weight):
+    """Two drones 1 m above the pad descend at 0.5 and 3 m/s: without the braking term the fast
+    one earns more (its approach speed), with it the slow one does (3 m/s is over the safe speed
+    there, 0.3 + 0.5 * 0.9 m/s; 0.5 m/s is not)."""
+    from tests.tasks.helpers import SETTINGS
+
+    settings = dict(SETTINGS["landing"])
+    settings.pop("num_envs")
+    env = make_env("landing", num_envs=2, seed=1, brake_weight=brake_weight, **settings)
+    try:
+        env.reset()
+        pad = env.pad[0].numpy()
+        place(env, np.add(pad, [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]]))
+        env.state = dataclasses.replace(env.state, vel=torch.tensor([[0.0, 0.0, -0.5], [0.0, 0.0, -3.0]]))
+        env.update_task_state()
+        _, reward, done, _ = env.step(hover(env))
+        assert not done.any()
+        slow, fast = reward
+        assert (slow > fast) if brake_weight else (fast > slow)
+    finally:
+        env.close()

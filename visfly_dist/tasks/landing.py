@@ -69,6 +69,10 @@ class LandingConfig(EnvConfig):
         pad_threshold: brightest channel below this is a pad pixel (0-255).
         fail_when_pad_lost: fail the episode when the pad leaves the view.
         success_bonus, fail_penalty: terminal reward terms (``reward="ours"``).
+        brake_weight: weight of the braking term (``reward="ours"``): minus the speed above a safe
+            speed that grows with the distance to the aim point, ``safe_speed + safe_speed_per_m * d``,
+            so the drone is paid to slow down on the way in (0 turns it off).
+        safe_speed, safe_speed_per_m: that safe speed at the aim point, m/s, and its growth, 1/s.
         reward: ``ours`` or ``visfly`` (the original's reward).
     """
 
@@ -81,6 +85,9 @@ class LandingConfig(EnvConfig):
     fail_when_pad_lost: bool = False
     success_bonus: float = 10.0
     fail_penalty: float = 5.0
+    brake_weight: float = 0.0
+    safe_speed: float = 0.3
+    safe_speed_per_m: float = 0.5
     reward: str = "ours"
 
     def problems(self) -> list[str]:
@@ -90,6 +97,10 @@ class LandingConfig(EnvConfig):
             out.append(f"pad_threshold={self.pad_threshold!r} must be in (0, 255]")
         if [c.kind for c in self.cameras[:1]] != ["rgb"]:
             out.append("landing needs an RGB camera first in cameras (e.g. the default DOWNWARD_RGB)")
+        for name in ("brake_weight", "safe_speed", "safe_speed_per_m"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 1e3:
+                out.append(f"{name}={value!r} must be a number in [0, 1000)")
         return out
 
 
@@ -152,9 +163,11 @@ class LandingEnv(DroneEnvBase):
             return (0.2 * (1.25 - 0.5 * pad[:, :2].norm(dim=1)).clamp(max=1.0) - 0.2 * s.quat[:, :2].norm(dim=1)
                     + 0.2 * (3.0 - s.pos[:, 2]).clamp(0.0, 3.0) / 3.0 - 0.02 * speed - 0.01 * s.omega.norm(dim=1)
                     + 2.0 * self.success.float() * (10.0 + remaining) / (1.0 + 2.0 * speed))
-        approach = progress_speed(self._prev_distance, self._aim_distance(), cfg.ctrl_dt)
+        distance = self._aim_distance()
+        approach = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
         in_view = (pad[:, 2] > 0).float()
-        reward = 0.05 * approach - 0.01 * s.omega.norm(dim=1) + 0.01 * in_view
+        too_fast = torch.relu(s.vel.norm(dim=1) - (cfg.safe_speed + cfg.safe_speed_per_m * distance))
+        reward = 0.05 * approach - 0.01 * s.omega.norm(dim=1) + 0.01 * in_view - cfg.brake_weight * too_fast
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
 
     def update_task_state(self) -> None:
