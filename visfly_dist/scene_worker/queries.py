@@ -185,10 +185,10 @@ class ObstacleQueries:
         reach = np.linalg.norm(positions[:, None, :] - offsets[None], axis=2) - radii <= dist[:, None]
         for k in np.flatnonzero(reach.any(axis=0)).tolist():
             sub, offset = self._moving[k][0], offsets[k]
-            local = positions - offset
             near = np.flatnonzero(reach[:, k])
-            d, p = sub._closest(local[near])
-            inside[near] |= sub._inside(local[near], d)
+            local = positions[near] - offset
+            d, p = sub._closest(local)
+            inside[near] |= sub._inside(local, d)
             better = d < dist[near]
             dist[near[better]] = d[better]
             points[near[better]] = p[better] + offset

@@ -218,13 +218,15 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
 
 
 def _camera_poses_of_all(checked: Sequence[tuple]) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
-    """Camera poses of the items whose renderers carry the first item's cameras, computed over all
-    their drones at once: item ``k`` -> ``[(origins, rotations)]`` per camera (its rows)."""
-    same = [k for k, (r, poses, _, _) in enumerate(checked) if len(poses) and r.cameras == checked[0][0].cameras]
+    """Camera poses of the native-traced items that carry the first such item's cameras, computed
+    over all their drones at once: item ``k`` -> ``[(origins, rotations)]`` per camera (its rows)."""
+    native = [k for k, (r, poses, _, _) in enumerate(checked) if len(poses) and getattr(r, "tracer", None) == "native"]
+    cameras = checked[native[0]][0].cameras if native else ()
+    same = [k for k in native if checked[k][0].cameras == cameras]
     if len(same) < 2:
         return {}
     poses = np.concatenate([checked[k][1] for k in same])
-    mounts = [camera_world_poses(poses, cam) for cam in checked[0][0].cameras]
+    mounts = [camera_world_poses(poses, cam) for cam in cameras]
     ends = np.cumsum([len(checked[k][1]) for k in same])
     return {k: [(o[end - len(checked[k][1]):end], m[end - len(checked[k][1]):end]) for o, m in mounts]
             for k, end in zip(same, ends.tolist())}
