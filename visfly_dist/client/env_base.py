@@ -71,6 +71,7 @@ class _InFlight:
     spawn_agents: np.ndarray
     started: float
     physics_s: float
+    sim_time: float
 
 
 @dataclass
@@ -161,7 +162,8 @@ class DroneEnvBase(VecEnv):
         self.agents_per_scene = config.agents_per_scene
         self._pending_actions: torch.Tensor | None = None
         self._t0 = time.time()
-        self.sim_time = 0.0   # s, ctrl_dt per step sent (of any group): where the moving obstacles are
+        self.sim_time = 0.0   # s: where the moving obstacles are for the group being stepped or taken in
+        self._steps_sent = torch.zeros(n, dtype=torch.long, device=self.device)  # per agent, since the last reseed
 
     # ----- task hooks ---------------------------------------------------------------------------
 
@@ -285,16 +287,20 @@ class DroneEnvBase(VecEnv):
         agents = np.flatnonzero(members)
         spawn_agents = np.flatnonzero(~self._prepared & members)
         poses = self.state.pose().detach().cpu().numpy()
-        self.sim_time += self.config.ctrl_dt
+        # groups stepped in turn share one clock: a group's k-th step happens at k * ctrl_dt
+        self._steps_sent = torch.where(group, self._steps_sent + 1, self._steps_sent)
+        sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
+        self.sim_time = sim_time
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
-                                        sim_time=self.sim_time)
-        return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0)
+                                        sim_time=sim_time)
+        return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0, sim_time)
 
     def _finish(self, flight: _InFlight) -> StepResult:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
         rows of ``flight.group`` are this step's (the others are zero / False)."""
         t0 = time.perf_counter()
+        self.sim_time = flight.sim_time  # the task hooks see this group's time
         obs, spawn_obs = self.aggregator.collect(flight.ticket)
         if len(flight.spawn_agents):
             ok = ~spawn_obs.lost
@@ -372,6 +378,11 @@ class DroneEnvBase(VecEnv):
         full[ids] = self._actions(actions, len(ids))
         with torch.set_grad_enabled(self.config.requires_grad):
             self._in_flight.append(self._send(full, group, None))
+
+    @property
+    def groups_in_flight(self) -> int:
+        """Groups sent with :meth:`send` and not yet taken in with :meth:`recv`."""
+        return len(self._in_flight)
 
     def recv(self, timeout_s: float | None = None) -> tuple[StepResult, torch.Tensor]:
         """The step of the first group whose observations are in: its rows only, and its env ids.
@@ -486,6 +497,7 @@ class DroneEnvBase(VecEnv):
         self.generator.manual_seed(seed)
         self.aggregator.reseed(seed)
         self.sim_time = 0.0   # the same seed starts the moving obstacles from the same places
+        self._steps_sent.zero_()
 
     def step_async(self, actions: np.ndarray) -> None:
         self._pending_actions = torch.as_tensor(np.asarray(actions), dtype=torch.float32, device=self.device)
@@ -493,7 +505,12 @@ class DroneEnvBase(VecEnv):
     def step_wait(self) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, list[dict[str, Any]]]:
         assert self._pending_actions is not None, "step_wait() without step_async()"
         actions, self._pending_actions = self._pending_actions, None
-        obs, reward, terminated, truncated, info = self.step_tensor(actions)
+        return self.to_sb3(self.step_tensor(actions))
+
+    def to_sb3(self, result: StepResult) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, list[dict[str, Any]]]:
+        """A step's result as SB3's ``VecEnv.step`` returns it: numpy observation, rewards, dones and
+        one info dict per row (every agent after :meth:`step_tensor`, a group's rows after :meth:`recv`)."""
+        obs, reward, terminated, truncated, info = result
         return (self.to_numpy(obs), reward.detach().cpu().numpy().astype(np.float32),
                 (terminated | truncated).cpu().numpy(), self._sb3_infos(terminated, truncated, info))
 
@@ -504,7 +521,7 @@ class DroneEnvBase(VecEnv):
         infos: list[dict[str, Any]] = [
             {"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
              "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(trunc[i])}
-            for i in range(self.num_envs)]
+            for i in range(len(done))]
         if done.any():
             terminal = self.to_numpy(info["terminal_observation"])
             ret = info["episode_return"].cpu().numpy()
