@@ -87,3 +87,21 @@ def test_send_recv_returns_groups_and_matches_the_synchronous_step(env):
     assert env.episode_step.tolist() == [0, 0, 1, 1]
     with pytest.raises(ConfigError, match="distinct indices"):
         env.send(hover, [4, 5])
+
+
+def test_groups_stepped_in_turn_share_one_clock():
+    env = make_counter(num_envs=4, max_episode_steps=50, pool=small_pool(workers=2))
+    try:
+        env.reset()
+        hover = torch.as_tensor(np.tile(env.quad.hover_action().numpy(), (2, 1)))
+        dt = env.config.ctrl_dt
+        for k in range(1, 4):
+            env.send(hover, [0, 1])
+            env.send(hover, [2, 3])
+            times = []
+            for _ in range(2):
+                env.recv()
+                times.append(env.sim_time)
+            assert times == pytest.approx([k * dt, k * dt])
+    finally:
+        env.close()

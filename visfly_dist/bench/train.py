@@ -204,7 +204,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
     default; tests use it for tiny sizes).
 
     Returns:
-        The row: ``task, mode`` (``plain``, ``overlap`` or ``pipeline``), ``delay_ms, workers, timesteps, env_steps_per_s, rollout_env_steps_per_s,
+        The row: ``task, delay_ms, workers, timesteps, env_steps_per_s, rollout_env_steps_per_s,
         loop_s, rollout_s, update_s, update_share, learner_busy, workers_busy, startup_s,
         success_rate, timing``.
     """
@@ -243,9 +243,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
         if remote is not None:
             remote.close()
         shutil.rmtree(out_dir, ignore_errors=True)
-    row = _row(task, delay_ms, count, result, clock, before, after)
-    mode = "overlap" if cfg.overlap else "pipeline" if cfg.pipeline else "plain"
-    return {"task": row.pop("task"), "mode": mode, **row}
+    return _row(task, delay_ms, count, result, clock, before, after)
 
 
 def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: LoopClock, before: CpuSnapshot,
@@ -318,8 +316,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the run")
     parser.add_argument("--overlap", action="store_true",
                         help="train with --overlap (next rollout collected during the update, policy lag 1)")
-    parser.add_argument("--pipeline", action="store_true",
-                        help="train with --pipeline (two halves of the agents stepped in turn, no policy lag)")
     parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")
 
 
@@ -330,7 +326,7 @@ def run(args: argparse.Namespace) -> int:
     timesteps = args.timesteps or (QUICK_TIMESTEPS if args.quick else DEFAULT_TIMESTEPS)
     result: dict[str, Any] = {"machine": machine_info()}
     result |= bench_train(args.task, timesteps, args.delay_ms, args.workers, args.seed,
-                          changes={"overlap": args.overlap, "pipeline": args.pipeline},
+                          changes={"overlap": True} if args.overlap else None,
                           log=lambda line: print(line, flush=True))
     result["load_average_end"] = load_average()
     print(report.text_table(result["rows"]))

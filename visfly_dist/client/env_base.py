@@ -379,11 +379,6 @@ class DroneEnvBase(VecEnv):
         with torch.set_grad_enabled(self.config.requires_grad):
             self._in_flight.append(self._send(full, group, None))
 
-    @property
-    def groups_in_flight(self) -> int:
-        """Groups sent with :meth:`send` and not yet taken in with :meth:`recv`."""
-        return len(self._in_flight)
-
     def recv(self, timeout_s: float | None = None) -> tuple[StepResult, torch.Tensor]:
         """The step of the first group whose observations are in: its rows only, and its env ids.
 

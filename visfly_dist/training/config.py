@@ -98,11 +98,6 @@ class TrainConfig:
         overlap: collect the next rollout while PPO updates on the last one (policy lag of one
             update, see :mod:`visfly_dist.training.overlap`). Off by default: on hover (20k steps,
             short rollouts) the lag cost most of what PPO learned; measure it on your task.
-        pipeline: step two halves of the agents in turn during rollouts, so the learner computes one
-            half's actions while the workers render the other (no policy lag; see
-            :mod:`visfly_dist.training.pipelined`). Off by default: on one 2-core host the learner's
-            per-step work doubles (the task runs over every agent once per half) and eats the gain;
-            it pays when workers are remote and each step waits a network round trip.
         scene_roots: folders scene files may be loaded from (``--scene-root``); ``scenes`` paths
             must lie under one of them.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
@@ -137,7 +132,6 @@ class TrainConfig:
     normalize: bool = True
     progress: bool = True
     overlap: bool = False
-    pipeline: bool = False
     scene_roots: tuple[str, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
     algo: str = "ppo"
@@ -185,10 +179,6 @@ class TrainConfig:
             out.append(f"algo={self.algo!r} must be one of {ALGOS}")
         if not isinstance(self.horizon, int) or isinstance(self.horizon, bool) or self.horizon < 1:
             out.append(f"horizon={self.horizon!r} must be an int >= 1")
-        if self.overlap and self.pipeline:
-            out.append("overlap and pipeline are exclusive: choose --overlap (rollout during the update) or --pipeline")
-        if self.algo != "ppo" and (self.overlap or self.pipeline):
-            out.append(f"--overlap and --pipeline apply to PPO only, not algo={self.algo!r}")
         if self.backbone not in BACKBONES:
             out.append(f"backbone={self.backbone!r} must be one of {BACKBONES}")
         return out + self._scene_problems()

@@ -41,7 +41,6 @@ from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
-from visfly_dist.training.pipelined import PipelinedPPO
 
 
 @dataclass
@@ -101,12 +100,10 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
 
     It is :class:`UpdateThreadsPPO` (plain PPO whose update uses every core while the workers are
-    idle), with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns),
-    or with ``cfg.pipeline`` :class:`PipelinedPPO` (two halves of the agents stepped in turn).
+    idle), or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
     """
     extra = {} if cfg.overlap else {"update_threads": cfg.update_threads}
-    algorithm = OverlappedPPO if cfg.overlap else PipelinedPPO if cfg.pipeline else UpdateThreadsPPO
-    model = algorithm(
+    model = (OverlappedPPO if cfg.overlap else UpdateThreadsPPO)(
         "MultiInputPolicy",
         env,
         learning_rate=cfg.lr,

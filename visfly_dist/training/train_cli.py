@@ -62,9 +62,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overlap", action="store_true",
                         help="collect the next rollout while PPO updates (workers and learner busy at once; "
                              "policy lag of one update, which can cost sample efficiency)")
-    parser.add_argument("--pipeline", action="store_true",
-                        help="step two halves of the agents in turn during rollouts (no policy lag): hides "
-                             "the workers' round trip, worth it with remote workers")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
@@ -111,7 +108,6 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         backbone=args.backbone,
         normalize=not args.no_normalize,
         overlap=args.overlap,
-        pipeline=args.pipeline,
         progress=not args.quiet,
         scene_roots=scene_roots(args),
         overrides=with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config),
