@@ -36,6 +36,11 @@ build_tracer() {
 if ! build_tracer >/dev/null 2>&1; then
   echo "setup.sh: native tracer not built (needs g++, make and libembree-dev, installed as root); raycast uses embreex and obstacle queries use FCL (slower)" >&2
 fi
+# Small native kernels of the training path (the image trunk's first pooling). Optional: without
+# them the same functions run as torch operations, slower.
+if ! make -s -C visfly_dist/training/native >/dev/null 2>&1; then
+  echo "setup.sh: native training kernels not built (needs g++ and make); the image trunk uses torch's operations (slower)" >&2
+fi
 
 if [ "${VISFLY_SETUP_ONLY:-0}" != "1" ]; then
   exec "$PY" -m visfly_dist.cli train navigation "$@"

@@ -9,7 +9,8 @@ import torch.nn.functional as F
 from gymnasium import spaces
 from torch import nn
 
-from visfly_dist.training.conv_pool import conv_maxpool2, phase_form_applies, phase_weight
+from visfly_dist.training.conv_pool import conv_maxpool2, phase_form_applies, phase_max, phase_weight
+from visfly_dist.training.native_kernels import load_kernels
 from visfly_dist.training.extractors import VisflyExtractor
 
 
@@ -73,3 +74,29 @@ def test_extractor_parameters_are_named_as_before() -> None:
     with torch.no_grad():
         normalised = fused.encoders["depth"].normalizer(x["depth"])
         torch.testing.assert_close(fused.encoders["depth"].trunk(normalised), plain_trunk(normalised), rtol=1e-5, atol=1e-5)
+
+
+needs_kernels = pytest.mark.skipif(load_kernels()[0] is None, reason=f"native kernels: {load_kernels()[1]}")
+
+
+@needs_kernels
+def test_native_phase_max_matches_torch_max() -> None:
+    torch.manual_seed(2)
+    grouped = torch.randn(5, 7, 3, 6, 4, requires_grad=True)
+    upstream = torch.randn(5, 7, 3, 6)
+    native = phase_max(grouped)
+    (native * upstream).sum().backward()
+    native_grad = grouped.grad.clone()
+    grouped.grad = None
+    reference = grouped.max(-1).values
+    (reference * upstream).sum().backward()
+    assert torch.equal(native, reference) and torch.equal(native_grad, grouped.grad)
+
+
+@needs_kernels
+def test_native_phase_max_ties_go_to_the_first_and_nan_wins() -> None:
+    grouped = torch.tensor([[1.0, 3.0, 3.0, 2.0], [0.5, float("nan"), 9.0, 1.0], [4.0, 4.0, 4.0, 4.0]], requires_grad=True)
+    out = phase_max(grouped)
+    assert out[0].item() == 3.0 and torch.isnan(out[1]) and out[2].item() == 4.0
+    out.backward(torch.ones_like(out))
+    assert grouped.grad.tolist() == [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]

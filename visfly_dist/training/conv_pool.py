@@ -22,8 +22,12 @@ kernel of 5 qualify); :func:`conv_maxpool2` falls back to the plain form otherwi
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
+
+from visfly_dist.training.native_kernels import load_kernels
 
 PHASE_MAX_IN_CHANNELS = 3
 """Above this many input channels the plain convolution and pool are faster."""
@@ -73,6 +77,42 @@ def conv_maxpool2(x: torch.Tensor, conv: torch.nn.Conv2d) -> torch.Tensor:
     phases = F.conv2d(unshuffled, phase_weight(conv.weight), bias)  # (B, 4 O, H', W'), channels-last
     height, width = phases.shape[2], phases.shape[3]
     grouped = phases.permute(0, 2, 3, 1).reshape(batch, height, width, out_ch, 4)
-    # amax is the fastest forward; max with indices gives a cheap backward (a scatter, not a mask)
-    pooled = grouped.max(-1).values if torch.is_grad_enabled() else grouped.amax(-1)
-    return pooled.permute(0, 3, 1, 2)
+    return phase_max(grouped).permute(0, 3, 1, 2)
+
+
+def phase_max(grouped: torch.Tensor) -> torch.Tensor:
+    """Maximum over the last axis (size 4); the gradient goes to the first maximal entry.
+
+    Uses the native kernel (:mod:`~visfly_dist.training.native_kernels`) for contiguous float32
+    CPU tensors that need a gradient; without gradients ``amax`` (fast in torch), else torch's
+    ``max`` with indices.
+    """
+    if not torch.is_grad_enabled() or not grouped.requires_grad:
+        return grouped.amax(-1)
+    lib, _ = load_kernels()
+    if lib is None or grouped.dtype != torch.float32 or grouped.device.type != "cpu":
+        return grouped.max(-1).values
+    return _NativePhaseMax.apply(grouped)
+
+
+class _NativePhaseMax(torch.autograd.Function):
+    """``max(-1)`` over 4 phases with a uint8 index, in the native kernel (no int64 indices)."""
+
+    @staticmethod
+    def forward(ctx: Any, grouped: torch.Tensor) -> torch.Tensor:
+        lib, _ = load_kernels()
+        grouped = grouped.contiguous()
+        out = torch.empty(grouped.shape[:-1], dtype=grouped.dtype)
+        index = torch.empty(grouped.shape[:-1], dtype=torch.uint8)
+        lib.vf_phase_max_forward(grouped.data_ptr(), out.data_ptr(), index.data_ptr(), out.numel())
+        ctx.save_for_backward(index)
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:
+        lib, _ = load_kernels()
+        (index,) = ctx.saved_tensors
+        grad = grad.contiguous().to(torch.float32)
+        grad_in = torch.empty((*index.shape, 4), dtype=torch.float32)
+        lib.vf_phase_max_backward(grad.data_ptr(), index.data_ptr(), grad_in.data_ptr(), index.numel())
+        return grad_in
