@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, tuple[str, str]] = {
     "physics": ("visfly_dist.bench.physics", "batched dynamics: agent-steps/s, eager and compiled"),
     "render": ("visfly_dist.bench.render", "renderers and obstacle queries: frames/s in-process and via a worker"),
     "step": ("visfly_dist.bench.step", "full VecEnv.step env-steps/s with a per-stage breakdown"),
+    "update": ("visfly_dist.bench.update", "one PPO update of the default policy alone: CPU and wall seconds"),
     "train": ("visfly_dist.bench.train", "the default training loop: whole-loop and rollout env-steps/s, busy shares"),
     "all": ("visfly_dist.bench.suite", "everything, with the pybullet peer, plots and BENCHMARKS.md"),
 }

@@ -1,0 +1,143 @@
+"""``visfly-dist bench update``: the CPU cost of one PPO update with the default policy, alone.
+
+The update is most of the default training loop's CPU time on a small host, and its wall time
+swings with outside load (OpenMP threads waiting for a core); its CPU time per sample does not,
+or much less. This benchmark fills SB3's rollout buffer with observations of the task's shapes
+(images at random depths) and times ``PPO.train()`` with the task's default sizes: CPU seconds
+and wall seconds per update, and the extractor's CPU milliseconds per sample (forward and
+backward, all epochs). Nothing is stepped: the scene workers start once, only to read the
+observation space.
+
+With ``--compare-kernels`` the same measurement runs again in a child process with the native
+training kernels off (``VISFLY_NATIVE_KERNELS=0``), and the ratio is reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from visfly_dist.bench.common import load_average, machine_info
+
+
+def observation_space(task: str) -> Any:
+    """The task's observation space (a short-lived env with one local worker)."""
+    from visfly_dist import make_env
+
+    env = make_env(task, num_envs=1)
+    try:
+        return env.observation_space
+    finally:
+        env.close()
+
+
+def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed: int = 0) -> dict[str, Any]:
+    """Time ``reps`` PPO updates of ``task``'s default configuration on ``threads`` torch threads.
+
+    Returns:
+        ``task, threads, samples, epochs, batch_size, kernels, update_cpu_s, update_wall_s,
+        ms_per_sample_pass`` (CPU ms per sample per epoch; medians over ``reps``).
+    """
+    import torch
+    from gymnasium import spaces
+    from stable_baselines3 import PPO
+
+    from visfly_dist.training.config import TrainConfig
+    from visfly_dist.training.extractors import visfly_policy_kwargs
+    from visfly_dist.training.memory import keep_freed_memory
+    from visfly_dist.training.native_kernels import load_kernels
+
+    keep_freed_memory()
+    cfg = TrainConfig(task=task).resolved()
+    obs_space = observation_space(task)
+    action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
+    torch.manual_seed(seed)
+    model = PPO("MultiInputPolicy", None, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
+                policy_kwargs=visfly_policy_kwargs(cfg.backbone), seed=seed, device="cpu", verbose=0,
+                _init_setup_model=False)
+    # no env: PPO only needs the spaces and the number of envs to build its policy and buffer
+    model.observation_space, model.action_space, model.n_envs = obs_space, action_space, cfg.num_envs
+    model._setup_model()
+    model.set_logger(_null_logger())
+    rng = np.random.default_rng(seed)
+    buf = model.rollout_buffer
+    for _ in range(cfg.n_steps):
+        obs = {k: _sample(space, cfg.num_envs, rng) for k, space in obs_space.spaces.items()}
+        with torch.no_grad():
+            actions, values, log_probs = model.policy({k: torch.as_tensor(v) for k, v in obs.items()})
+        buf.add(obs, actions.numpy(), rng.normal(size=cfg.num_envs).astype(np.float32),
+                np.zeros(cfg.num_envs, dtype=bool), values, log_probs)
+    buf.compute_returns_and_advantage(last_values=torch.zeros(cfg.num_envs), dones=np.zeros(cfg.num_envs, dtype=bool))
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    cpu, wall = [], []
+    try:
+        model.train()  # warm-up: allocations, the first channels-last switch
+        for _ in range(reps):
+            c, w = time.process_time(), time.perf_counter()
+            model.train()
+            cpu.append(time.process_time() - c)
+            wall.append(time.perf_counter() - w)
+    finally:
+        torch.set_num_threads(previous)
+    samples = cfg.n_steps * cfg.num_envs
+    update_cpu = float(np.median(cpu))
+    return {"task": task, "threads": threads, "samples": samples, "epochs": cfg.n_epochs, "batch_size": cfg.batch_size,
+            "kernels": "native" if load_kernels()[0] is not None else "torch",
+            "update_cpu_s": round(update_cpu, 3), "update_wall_s": round(float(np.median(wall)), 3),
+            "ms_per_sample_pass": round(update_cpu / (samples * cfg.n_epochs) * 1e3, 4)}
+
+
+def _sample(space: Any, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` observations: images uniform in their range (depth up to 20 m), vectors standard normal."""
+    if len(space.shape) == 3:
+        high = 255.0 if space.dtype == np.uint8 else float(np.minimum(space.high, 20.0).max())
+        return rng.uniform(0.0, high, size=(n, *space.shape)).astype(space.dtype)
+    return rng.normal(size=(n, *space.shape)).astype(space.dtype)
+
+
+def _null_logger() -> Any:
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--task", default="navigation", help="task whose default PPO update to time (default: navigation)")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1], help="torch threads to try (default 1)")
+    parser.add_argument("--reps", type=int, default=3, help="timed updates per row (median; default 3)")
+    parser.add_argument("--compare-kernels", action="store_true",
+                        help="also run with the native training kernels off, in a child process")
+    parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+
+
+def run(args: argparse.Namespace) -> int:
+    from visfly_dist.bench import report
+    from visfly_dist.errors import ConfigError
+
+    if any(t < 1 for t in args.threads) or args.reps < 1:
+        raise ConfigError(f"--threads {args.threads} and --reps {args.reps} must be >= 1")
+    rows = [bench_update(args.task, t, args.reps) for t in args.threads]
+    if args.child:
+        print(json.dumps(rows))
+        return 0
+    if args.compare_kernels:
+        command = [sys.executable, "-m", "visfly_dist.cli", "bench", "update", "--task", args.task, "--reps", str(args.reps),
+                   "--child", "--threads", *map(str, args.threads)]
+        child = subprocess.run(command, env={**os.environ, "VISFLY_NATIVE_KERNELS": "0"}, capture_output=True, text=True,
+                               check=True)
+        rows += json.loads(child.stdout.strip().splitlines()[-1])
+    result: dict[str, Any] = {"machine": machine_info(), "rows": rows, "load_average_end": load_average()}
+    print(report.text_table(rows))
+    if args.json:
+        report.write_json(result, args.json)
+        print(f"wrote {args.json}")
+    return 0
