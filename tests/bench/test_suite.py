@@ -113,3 +113,18 @@ def test_ratios_use_the_fastest_of_ours_against_the_peer():
 def test_unknown_section_is_a_config_error():
     with pytest.raises(ConfigError, match="unknown sections.*'rendering'"):
         run_suite(PRESETS["tiny"], ("rendering",))
+
+
+def test_rewriting_the_report_keeps_the_hand_written_part(tiny_run, tmp_path):
+    """``--md`` on an existing BENCHMARKS.md replaces the generated part and keeps what follows the mark."""
+    out, _ = tiny_run
+    result = json.loads((out / "r.json").read_text())
+    md = tmp_path / "BENCHMARKS.md"
+    hand = f"{report.HAND_WRITTEN_MARK}\n\n## A study\n\nbefore 1, after 2\n"
+    md.write_text("# Benchmarks\n\nstale generated figures\n\n" + hand)
+    report.write_markdown(result, md, out / "plots")
+    text = md.read_text()
+    assert "stale generated figures" not in text and "## Goals" in text
+    assert text.endswith(hand) and text.count(report.HAND_WRITTEN_MARK) == 1
+    report.write_markdown(result, md, out / "plots")  # idempotent
+    assert md.read_text() == text
