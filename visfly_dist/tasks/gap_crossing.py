@@ -8,7 +8,9 @@
 | ``target``   | unit direction to own target in the body frame (3), distance to it (1)    | -, m             | [-1, 1], >= 0 |
 | ``gap``      | unit direction to the own gap point in the body frame (3), distance to it (1) | -, m         | [-1, 1], >= 0 |
 
-Action: ``Box(-1, 1, (4,))`` per drone for the configured controller (CTBR by default).
+Action: ``Box(-1, 1, (4,))`` per drone for the configured controller: LV by default (world velocity
+set point, +-10 m/s per axis, and a yaw angle), so a short training budget goes to the team's
+queueing through the gap rather than to attitude control; ``controller="ctbr"`` for body rates.
 
 Targets: drone of rank ``r`` in its team flies to ``targets[r]`` of the scene metadata (default
 ``(13, {-2, 0, 2}, 1.5)``) and spawns in its lane: ``(2, target_y, 1.5) ± (1, 0.5, 0.5)``.
@@ -62,6 +64,7 @@ class GapCrossingConfig(EnvConfig):
     agents_per_scene: int = 3
     multi_agent: bool = True
     scenes: tuple[str, ...] = ("gen:gap-walls",)
+    controller: str = "lv"
     cameras: tuple[CameraSpec, ...] = (FORWARD_DEPTH,)
     targets: tuple[tuple[float, float, float], ...] = DEFAULT_TARGETS
     gap_x: float = 8.0
