@@ -53,7 +53,7 @@ class GapCrossingConfig(EnvConfig):
 
     Attributes:
         targets: per team rank, the target when the scene's metadata has none, m.
-        gap_x: x of the wall when the scene's metadata has no ``gap_center``, m.
+        gap_x: x of the wall when the scene's metadata has no ``gap_center`` (the gap is then at y = 0), m.
         spawn_x, spawn_z: lane spawn centre x and height, m.
         spawn_half_width: lane spawn half extents, m.
         through_margin: a drone is through when ``x > gap_x + through_margin``, m.
