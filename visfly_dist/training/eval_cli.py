@@ -9,7 +9,8 @@ or one folder up), then ``--seed``, ``--scene-root`` and ``--set`` changes; the 
 normalisation saved with the checkpoint (``*.norm.npz``) is applied. Both modes (``--mode both``,
 the default) run from the same seed, so they start from the same spawns: ``deterministic`` takes
 the policy's mean action, ``sampled`` draws actions as in training. Each line gives the success
-rate with its Wilson 95 % interval and how the episodes ended. The default seed (12345) differs
+rate with its Wilson 95 % interval and how the episodes ended; in team tasks (``gap_crossing``)
+an episode is a team's, a success only when every member succeeds. The default seed (12345) differs
 from training's, so generated scenes (seeded from the env seed) and spawns are ones training never
 saw; an equal seed is refused unless ``--allow-training-seed``. Scene files are not drawn from the
 seed: hold some out of training and pass them with ``--scene-root DIR --set scenes='["held_out/*.glb"]'``.

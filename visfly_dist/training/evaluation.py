@@ -2,6 +2,9 @@
 
 Episodes are counted per agent up to a quota of ``ceil(episodes / num_envs)`` each, so that short
 (often failed) episodes do not crowd out long ones; the first ``episodes`` counted are reported.
+In team tasks (``team_size`` agents per scene, whose episodes end together) an episode is a team's:
+it succeeds when every member does, its end cause is its members' first in ``END_CAUSES`` order
+(a collision, say, rather than the teammates' ``swapped``), its return is the members' mean.
 Returns are the env's raw rewards (``info["episode"]`` of ``VecMonitor``), never the normalised ones.
 Each episode's end cause comes from :func:`visfly_dist.tasks.outcomes.end_cause`; the scene it
 flew in is the concrete source of its scene slot (a seeded ``gen:`` spec or a root-relative path).
@@ -42,7 +45,8 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 @dataclass
 class Episode:
-    """One evaluated episode: agent index, scene source, outcome, return and length."""
+    """One evaluated episode: agent index (team tasks: the team's first agent), scene source, outcome,
+    return (team tasks: the members' mean) and length."""
 
     agent: int
     scene: str
@@ -66,6 +70,7 @@ class EvalStats:
         mean_length: mean episode length, steps.
         end_causes: episodes per end cause (every cause of ``END_CAUSES``, zeros included).
         scenes: the distinct scene sources the episodes flew in.
+        team_size: agents per counted episode (1, or the team of a team task).
         video_frames: frames written to the video (0 without one).
         video_episode_length: length of the filmed episode, steps (0 without a video).
         video_success: whether the filmed episode succeeded.
@@ -81,6 +86,7 @@ class EvalStats:
     mean_length: float
     end_causes: dict[str, int]
     scenes: list[str]
+    team_size: int = 1
     video_frames: int = 0
     video_episode_length: int = 0
     video_success: bool = False
@@ -101,7 +107,8 @@ class EvalStats:
         """One summary line: success with its interval, causes, return and length."""
         lo, hi = self.success_ci95
         causes = "  ".join(f"{k} {v}" for k, v in self.end_causes.items() if v)
-        return (f"{self.mode:>13}: success {self.success_rate:.2f} [{lo:.2f}, {hi:.2f}] over {self.episodes}  "
+        teams = f" teams of {self.team_size}" if self.team_size > 1 else ""
+        return (f"{self.mode:>13}: success {self.success_rate:.2f} [{lo:.2f}, {hi:.2f}] over {self.episodes}{teams}  "
                 f"return {self.mean_return:8.2f}  length {self.mean_length:6.1f}  ends: {causes}")
 
 
@@ -132,6 +139,16 @@ def _slot_sources(base: Any) -> list[str]:
     return [base.aggregator.slot_source(s) for s in range(base.aggregator.num_scenes)]
 
 
+def _episode(members: list[int], infos: list[dict[str, Any]], scene: str, team: int, limit: int) -> Episode:
+    """The counted episode of the agents ``members`` (one agent, or the members of a team that ended)."""
+    lengths = [int(infos[i]["episode"]["l"]) for i in members]
+    causes = [end_cause(infos[i], length, limit) for i, length in zip(members, lengths)]
+    return Episode(agent=members[0], scene=scene,
+                   success=len(members) == team and all(bool(infos[i].get("is_success")) for i in members),
+                   end_cause=min(causes, key=END_CAUSES.index),
+                   episode_return=float(np.mean([infos[i]["episode"]["r"] for i in members])), length=max(lengths))
+
+
 def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True, seed: int = 0,
              recorder: VideoRecorder | None = None, film_success: bool = False) -> EvalStats:
     """Run ``model`` on ``env`` (reseeded with ``seed``) until ``episodes`` episodes are counted.
@@ -150,9 +167,10 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     if episodes < 1:
         raise ConfigError(f"episodes={episodes!r} must be >= 1")
     base = env.unwrapped
+    team = int(getattr(base, "team_size", 1))
     n, limit = env.num_envs, int(base.config.max_episode_steps)
-    quota = math.ceil(episodes / n)
-    counted = np.zeros(n, dtype=np.int64)
+    quota = math.ceil(episodes / (n // team))
+    counted = np.zeros(n // team, dtype=np.int64)
     log: list[Episode] = []
     filming, filmed_length, filmed_success = recorder is not None, 0, False
     last_failure: list[np.ndarray] = []
@@ -178,11 +196,11 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
                 else:
                     last_failure, recorder.frames = recorder.frames, []
                     step, ret = 0, 0.0
-            if counted[i] < quota and len(log) < episodes:
-                counted[i] += 1
-                log.append(Episode(agent=int(i), scene=sources[int(agent_scene[i])], success=bool(info.get("is_success")),
-                                   end_cause=end_cause(info, int(ep["l"]), limit),
-                                   episode_return=float(ep["r"]), length=int(ep["l"])))
+        for unit in np.unique(np.flatnonzero(dones) // team):
+            if counted[unit] < quota and len(log) < episodes:
+                counted[unit] += 1
+                members = [i for i in range(unit * team, (unit + 1) * team) if dones[i]]
+                log.append(_episode(members, infos, sources[int(agent_scene[members[0]])], team, limit))
     if filming and film_success and last_failure:
         recorder.frames = last_failure  # no success filmed: keep the last whole episode
     wins = sum(e.success for e in log)
@@ -197,6 +215,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
         mean_length=float(np.mean([e.length for e in log])),
         end_causes={c: causes.get(c, 0) for c in END_CAUSES},
         scenes=sorted({e.scene for e in log}),
+        team_size=team,
         video_frames=len(recorder.frames) if recorder is not None else 0,
         video_episode_length=filmed_length,
         video_success=filmed_success,
