@@ -90,6 +90,18 @@ def test_gap_walls_leave_the_gap_open():
         generate_scene("gap-walls", gap_width=20)
 
 
+def test_gap_walls_spread_moves_the_gap_with_the_seed():
+    centres = [generate_scene("gap-walls", seed=seed, gap_y_spread=1.5).metadata["gap_center"][1] for seed in range(12)]
+    assert all(-1.5 <= y <= 1.5 for y in centres) and len(set(centres)) == 12 and max(centres) - min(centres) > 1.0
+    scene = generate_scene("gap-walls", seed=3, gap_y_spread=1.5, gap_width=0.8)
+    gap_y = scene.metadata["gap_center"][1]
+    left, right = scene.objects[-2].mesh.bounds, scene.objects[-1].mesh.bounds
+    assert left[1, 1] == pytest.approx(gap_y - 0.4) and right[0, 1] == pytest.approx(gap_y + 0.4)
+    assert generate_scene("gap-walls", seed=3, gap_y_spread=1.5).metadata == scene.metadata  # same seed, same wall
+    with pytest.raises(SceneError, match="gap_y_spread=6.8"):
+        generate_scene("gap-walls", gap_y_spread=6.8)
+
+
 def test_landing_pad_is_black_and_its_own_object():
     scene = generate_scene("landing-pad")
     pad = scene.object_by_id(2)

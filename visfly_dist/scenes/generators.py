@@ -238,6 +238,7 @@ def gap_walls(
     gap_width: float = 0.8,
     wall_x: float = 8.0,
     gap_y: float = 0.0,
+    gap_y_spread: float = 0.0,
     wall_thickness: float = 0.2,
 ) -> Built:
     """The 18 x 14 x 5 m garage split by a wall across x with one floor-to-ceiling gap.
@@ -246,6 +247,8 @@ def gap_walls(
         gap_width: width of the vertical gap, m.
         wall_x: x of the wall's centre plane, m.
         gap_y: y of the gap's centre, m.
+        gap_y_spread: the gap's centre is drawn uniformly in ``gap_y ± gap_y_spread`` from the
+            scene's seed (0: exactly ``gap_y``), so a set of seeds gives walls a policy has not seen.
         wall_thickness: wall thickness along x, m.
 
     Metadata: ``gap_center`` ([wall_x, gap_y, mid-height]), ``start_region`` (before the wall),
@@ -254,6 +257,10 @@ def gap_walls(
     """
     (x0, y0, z0), (x1, y1, z1) = GARAGE_LOW, GARAGE_HIGH
     half_gap, half_t = gap_width / 2, wall_thickness / 2
+    _check(gap_y_spread >= 0 and y0 < gap_y - gap_y_spread - half_gap and gap_y + gap_y_spread + half_gap < y1,
+           f"gap_y={gap_y} ± gap_y_spread={gap_y_spread} with gap_width={gap_width} must leave wall on both sides "
+           f"within y in ({y0}, {y1})")
+    gap_y = float(gap_y + rng.uniform(-gap_y_spread, gap_y_spread)) if gap_y_spread > 0 else gap_y
     _check(gap_width > 0 and y0 < gap_y - half_gap and gap_y + half_gap < y1,
            f"gap_width={gap_width}, gap_y={gap_y} must leave wall on both sides within y in ({y0}, {y1})")
     _check(wall_thickness > 0 and x0 < wall_x - half_t and wall_x + half_t < x1,

@@ -63,7 +63,10 @@ class GapCrossingConfig(EnvConfig):
     num_envs: int = 6
     agents_per_scene: int = 3
     multi_agent: bool = True
-    scenes: tuple[str, ...] = ("gen:gap-walls",)
+    # every scene's gap somewhere in y = ±1.5 m, a new wall every 10 team episodes in a scene: the
+    # policy must find the gap, not remember one (evaluation with another seed meets unseen walls)
+    scenes: tuple[str, ...] = ("gen:gap-walls?gap_y_spread=1.5",)
+    swap_every_resets: int = 30
     controller: str = "lv"
     cameras: tuple[CameraSpec, ...] = (FORWARD_DEPTH,)
     targets: tuple[tuple[float, float, float], ...] = DEFAULT_TARGETS
