@@ -12,7 +12,7 @@ import torch
 from visfly_dist import make_env
 from visfly_dist.dynamics.rotations import quat_to_rotmat
 from visfly_dist.errors import ConfigError
-from visfly_dist.tasks.landing import DOWNWARD_DEPTH, DOWNWARD_RGB, LandingConfig, shaped_reward
+from visfly_dist.tasks.landing import CURRICULUM_WINDOW, DOWNWARD_DEPTH, DOWNWARD_RGB, LandingConfig, shaped_reward
 from visfly_dist.tasks.outcomes import end_cause
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.evaluation import eval_config
@@ -41,7 +41,7 @@ def descend(env):
 
 
 def test_a_scripted_descent_from_the_full_spawn_box_lands_by_the_tasks_own_rule():
-    with landing_env(curriculum_steps=0) as env:
+    with landing_env(curriculum_levels=0) as env:
         env.reset()
         starts, causes = [float(env.state.pos[:, 2].max())], []
         while len(causes) < 6:
@@ -79,26 +79,34 @@ def test_camera_settings_are_checked():
     with pytest.raises(ConfigError, match="camera='depth' needs a depth camera first in cameras"):
         LandingConfig(camera="depth", cameras=(DOWNWARD_RGB,)).validate()
     assert LandingConfig(camera="depth").cameras == (DOWNWARD_DEPTH,)
-    with pytest.raises(ConfigError, match=r"curriculum_steps=-1 must be an int >= 0.*curriculum_start=0 must be"):
-        LandingConfig(curriculum_steps=-1, curriculum_start=0).validate()
+    with pytest.raises(ConfigError, match=r"curriculum_levels=-1 must be an int >= 0.*curriculum_start=0 must be"):
+        LandingConfig(curriculum_levels=-1, curriculum_start=0).validate()
 
 
-def test_the_spawn_box_grows_with_training_steps_and_evaluation_starts_full():
-    with landing_env(curriculum_steps=40, curriculum_start=0.2) as env:
+def test_the_spawn_box_grows_a_level_each_time_half_the_last_64_episodes_landed_and_evaluation_starts_full():
+    with landing_env(curriculum_levels=2, curriculum_start=0.2) as env:
         env.reset()
         every = torch.arange(2)
         heights = lambda: torch.cat([env.spawn_positions(every) for _ in range(20)])[:, 2] - env.pad[0, 2]  # noqa: E731
+
+        def episodes(landed):  # 2 agents end an episode each step: slowly just above the pad, or 2 m/s into it
+            for _ in range(CURRICULUM_WINDOW // 2):
+                place(env, np.add(env.pad.numpy(), [0.0, 0.0, 0.15]))
+                env.state = dataclasses.replace(env.state, vel=torch.tensor([[0.0, 0.0, -0.1 if landed else -2.0]] * 2))
+                _, _, done, _ = env.step(hover(env))
+                assert done.all()
+
         assert env.spawn_scale() == pytest.approx(0.2) and float(heights().max()) <= 0.7 + 1e-6
-        for _ in range(10):  # 2 agents x 10 steps: half way
-            env.step(hover(env))
-        assert env.steps_taken == 20 and env.spawn_scale() == pytest.approx(0.6)
+        episodes(landed=False)
+        assert env.curriculum_level == 0  # 64 crashes: no promotion
+        episodes(landed=True)
+        assert env.curriculum_level == 1 and env.spawn_scale() == pytest.approx(0.6)
         assert float(heights().max()) <= 0.6 * 3.5 + 1e-6
-        for _ in range(20):
-            env.step(hover(env))
+        episodes(landed=True)
         assert env.spawn_scale() == 1.0 and float(heights().max()) > 2.2  # the full 1.5-3.5 m box
-    run = TrainConfig(task="landing", overrides={"curriculum_steps": 50_000})
-    assert eval_config("landing", 12345, run, {}, {}).overrides["curriculum_steps"] == 0
-    assert eval_config("landing", 12345, run, {"curriculum_steps": 7}, {}).overrides["curriculum_steps"] == 7
+    run = TrainConfig(task="landing", overrides={"curriculum_levels": 5})
+    assert eval_config("landing", 12345, run, {}, {}).overrides["curriculum_levels"] == 0
+    assert eval_config("landing", 12345, run, {"curriculum_levels": 7}, {}).overrides["curriculum_levels"] == 7
 
 
 def test_the_shaped_reward_matches_finite_differences_and_pays_a_slow_final_approach():

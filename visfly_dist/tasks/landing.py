@@ -32,16 +32,19 @@ Termination: success when ``z <= 0.2 m``, within 0.3 m (horizontally) of the pad
 Spawn: uniform in ``pad + (0, 0, 2.5) ± (1, 1, 1)``, 0.3 m clear. The pad centre comes from the
 scene metadata (``pad_center``) when present, else ``config.pad_center``.
 
-Curriculum (on by default): the spawn box's height above the pad and its half widths are scaled by
-``curriculum_start`` (0.2: 0.3-0.7 m above the pad, ±0.2 m) at first, growing linearly to the full
-box over the env's first ``curriculum_steps`` (100,000) env steps (all agents together; 0 turns it
-off). ``visfly-dist eval`` turns it off (:attr:`LandingConfig.evaluation_defaults`), so evaluation
-always starts from the full box.
+Curriculum (on by default): the spawn box's height above the pad and its half widths are scaled
+by ``curriculum_start`` (0.15: 0.31-0.53 m above the pad, ±0.15 m) at first; each time the agents
+landed in at least ``curriculum_success`` (half) of the last :data:`CURRICULUM_WINDOW` (64) episodes,
+the scale grows by ``(1 - curriculum_start) / curriculum_levels`` until the full box (after
+``curriculum_levels`` (8) steps; 0 turns the curriculum off). Starts are drawn one episode ahead,
+so a window's first episodes may come from the level before. ``visfly-dist eval`` turns it off
+(:attr:`LandingConfig.evaluation_defaults`): evaluation always starts from the full box.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -61,6 +64,9 @@ DOWNWARD_RGB = CameraSpec(name="color", kind="rgb", width=64, height=64, hfov_de
 DOWNWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, rotation=DOWNWARD)
 CAMERAS = {"rgb": DOWNWARD_RGB, "depth": DOWNWARD_DEPTH}
 """``LandingConfig.camera`` -> the default downward camera of that kind."""
+
+CURRICULUM_WINDOW = 64
+"""Episodes whose success rate moves the curriculum to its next level."""
 
 AIM_HEIGHT = 0.1
 """The aim point of the approach term: this far above the pad centre, m (a drone resting on the pad)."""
@@ -120,9 +126,11 @@ class LandingConfig(EnvConfig):
         pad_center: pad centre when the scene's metadata has none, m.
         spawn_height: spawn centre height above the pad, m.
         spawn_half_width: spawn box half extents, m.
-        curriculum_steps: env steps (all agents) over which the spawn box grows to its full size
-            (0: no curriculum, always the full box).
-        curriculum_start: the spawn box's scale at the start of the curriculum, in (0, 1].
+        curriculum_levels: steps from the curriculum's first spawn box to the full one (0: no
+            curriculum, always the full box).
+        curriculum_start: the spawn box's scale at the curriculum's first level, in (0, 1].
+        curriculum_success: success rate over the last ``CURRICULUM_WINDOW`` episodes that moves
+            the curriculum to its next level, in (0, 1].
         pad_threshold: brightest channel below this is a pad pixel (0-255; ``camera="rgb"``).
         fail_when_pad_lost: fail the episode when the pad leaves the view.
         success_bonus, fail_penalty: terminal reward terms (``reward="ours"``).
@@ -133,7 +141,7 @@ class LandingConfig(EnvConfig):
         reward: ``ours`` or ``visfly`` (the original's reward).
     """
 
-    evaluation_defaults: ClassVar[dict[str, Any]] = {"curriculum_steps": 0}
+    evaluation_defaults: ClassVar[dict[str, Any]] = {"curriculum_levels": 0}
     """Settings an evaluation applies over the training run's: the full spawn box, from the start."""
 
     scenes: tuple[str, ...] = ("gen:landing-pad",)
@@ -142,8 +150,9 @@ class LandingConfig(EnvConfig):
     pad_center: tuple[float, float, float] = (2.0, 0.0, 0.0)
     spawn_height: float = 2.5
     spawn_half_width: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    curriculum_steps: int = 100_000
-    curriculum_start: float = 0.2
+    curriculum_levels: int = 8
+    curriculum_start: float = 0.15
+    curriculum_success: float = 0.5
     pad_threshold: float = 40.0
     fail_when_pad_lost: bool = False
     success_bonus: float = 10.0
@@ -168,10 +177,12 @@ class LandingConfig(EnvConfig):
                        f"(e.g. leave cameras unset for the 64x64 downward one)")
         if not isinstance(self.pad_threshold, (int, float)) or not 0 < self.pad_threshold <= 255:
             out.append(f"pad_threshold={self.pad_threshold!r} must be in (0, 255]")
-        if not isinstance(self.curriculum_steps, int) or isinstance(self.curriculum_steps, bool) or self.curriculum_steps < 0:
-            out.append(f"curriculum_steps={self.curriculum_steps!r} must be an int >= 0 (0: no curriculum)")
-        if not isinstance(self.curriculum_start, (int, float)) or not 0 < self.curriculum_start <= 1:
-            out.append(f"curriculum_start={self.curriculum_start!r} must be a number in (0, 1]")
+        if not isinstance(self.curriculum_levels, int) or isinstance(self.curriculum_levels, bool) or self.curriculum_levels < 0:
+            out.append(f"curriculum_levels={self.curriculum_levels!r} must be an int >= 0 (0: no curriculum)")
+        for name in ("curriculum_start", "curriculum_success"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value <= 1:
+                out.append(f"{name}={value!r} must be a number in (0, 1]")
         for name in ("brake_weight", "safe_speed", "safe_speed_per_m"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 1e3:
@@ -184,7 +195,7 @@ class LandingEnv(DroneEnvBase):
 
     Attributes:
         pad: ``(N, 3)`` each agent's pad centre, m.
-        steps_taken: env steps taken so far (all agents together): the curriculum's clock.
+        curriculum_level: the curriculum's level, 0 to ``curriculum_levels``.
     """
 
     config_class = LandingConfig
@@ -194,7 +205,8 @@ class LandingEnv(DroneEnvBase):
         super().__init__(config)
         self.pad = torch.zeros(self.num_envs, 3, device=self.device)
         self._prev_distance = torch.zeros(self.num_envs, device=self.device)
-        self.steps_taken = 0
+        self.curriculum_level = 0
+        self._outcomes: list[bool] = []  # success of the episodes ended at this level, the last CURRICULUM_WINDOW
 
     def observation_space_dict(self) -> dict[str, spaces.Space]:
         out = super().observation_space_dict()
@@ -202,12 +214,11 @@ class LandingEnv(DroneEnvBase):
         return out
 
     def spawn_scale(self) -> float:
-        """The spawn box's scale now: ``curriculum_start`` growing linearly to 1 over ``curriculum_steps``."""
+        """The spawn box's scale now: ``curriculum_start`` at level 0, 1 at the last level (or without curriculum)."""
         cfg = self.config
-        if cfg.curriculum_steps == 0:
+        if cfg.curriculum_levels == 0:
             return 1.0
-        progress = min(1.0, self.steps_taken / cfg.curriculum_steps)
-        return cfg.curriculum_start + (1.0 - cfg.curriculum_start) * progress
+        return cfg.curriculum_start + (1.0 - cfg.curriculum_start) * self.curriculum_level / cfg.curriculum_levels
 
     def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
         # The spawn box follows each scene's pad, spawn_height above it, scaled by the curriculum.
@@ -261,4 +272,12 @@ class LandingEnv(DroneEnvBase):
 
     def update_task_state(self) -> None:
         self._prev_distance = (self.state.pos.detach() - self._aim()).norm(dim=1)
-        self.steps_taken += int(self.step_mask.sum())
+        cfg = self.config
+        if self.curriculum_level < cfg.curriculum_levels:
+            ended = (self.success | self.failure | (self.episode_step >= cfg.max_episode_steps)) & self.step_mask
+            self._outcomes = (self._outcomes + self.success[ended].tolist())[-CURRICULUM_WINDOW:]
+            if len(self._outcomes) == CURRICULUM_WINDOW and sum(self._outcomes) >= cfg.curriculum_success * CURRICULUM_WINDOW:
+                self.curriculum_level += 1
+                self._outcomes = []
+                print(f"landing curriculum: level {self.curriculum_level}/{cfg.curriculum_levels}, spawn box "
+                      f"scale {self.spawn_scale():.2f}", file=sys.stderr, flush=True)
