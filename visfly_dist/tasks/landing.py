@@ -1,10 +1,10 @@
-"""Landing: land gently on a pad, seen by a downward camera (RGB or depth).
+"""Landing: land gently on a pad, seen by a downward camera (depth by default, or RGB).
 
 | observation | meaning                                                                  | unit             | range     |
 |-------------|--------------------------------------------------------------------------|------------------|-----------|
 | ``state``   | position minus pad centre (3), velocity (3), quaternion wxyz (4), body rates (3) | m, m/s, -, rad/s | unbounded |
-| ``color``   | ``camera="rgb"`` (default): downward RGB image ``(3, 64, 64)``, 90 deg hfov | -             | [0, 255]  |
-| ``depth``   | ``camera="depth"``: downward depth image ``(1, 64, 64)``, 90 deg hfov    | m                | [0, 20]   |
+| ``depth``   | ``camera="depth"`` (default): downward depth image ``(1, 64, 64)``, 90 deg hfov | m           | [0, 20]   |
+| ``color``   | ``camera="rgb"``: downward RGB image ``(3, 64, 64)``, 90 deg hfov       | -                | [0, 255]  |
 | ``pad``     | pad centre in the image: ``u``, ``v`` (image x right, y down, normalised), and a third entry (below) | - | [-1, 1], [0, 1] |
 
 The pad observation with ``camera="rgb"``: pixels whose brightest channel is below ``pad_threshold``
@@ -18,8 +18,8 @@ Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
 
 Reward per step, ``reward="ours"`` (default; ``p`` the aim point 0.1 m above the pad centre, ``d``
 the distance to it): ``0.05 *`` approach speed to ``p`` (m/s, finite difference), minus
-``brake_weight`` (0.1) times the speed above ``safe_speed + safe_speed_per_m * d`` (0.3 + 0.5 d
-m/s: the drone is paid to slow down on the way in), ``-0.01 * |omega|``, ``+0.01`` while the pad is
+``brake_weight`` (0.1) times the speed above ``safe_speed + safe_speed_per_m * d`` (0.2 + 0.5 d
+m/s: the drone is paid to slow down on the way in, to 0.25 m/s at the top of the success zone), ``-0.01 * |omega|``, ``+0.01`` while the pad is
 in view, ``+success_bonus`` (10) on success, ``-fail_penalty`` (5) on failure. Every term but the
 terminal ones is differentiable in the state (BPTT/SHAC: :func:`shaped_reward`).
 ``reward="visfly"`` (VisFly's LandingEnv; ``c = (u, v) / 2`` the pad centre in VisFly's image units,
@@ -145,7 +145,7 @@ class LandingConfig(EnvConfig):
     """Settings an evaluation applies over the training run's: the full spawn box, from the start."""
 
     scenes: tuple[str, ...] = ("gen:landing-pad",)
-    camera: str = "rgb"
+    camera: str = "depth"
     cameras: tuple[CameraSpec, ...] | None = None  # type: ignore[assignment]
     pad_center: tuple[float, float, float] = (2.0, 0.0, 0.0)
     spawn_height: float = 2.5
@@ -158,7 +158,7 @@ class LandingConfig(EnvConfig):
     success_bonus: float = 10.0
     fail_penalty: float = 5.0
     brake_weight: float = 0.1
-    safe_speed: float = 0.3
+    safe_speed: float = 0.2
     safe_speed_per_m: float = 0.5
     reward: str = "ours"
 
