@@ -18,7 +18,7 @@ Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
 
 Reward per step, ``reward="ours"`` (default; ``p`` the aim point 0.1 m above the pad centre, ``d``
 the distance to it): ``0.05 *`` approach speed to ``p`` (m/s, finite difference), minus
-``brake_weight`` (0.1) times the speed above ``safe_speed + safe_speed_per_m * d`` (0.2 + 0.5 d
+``brake_weight`` (1) times the speed above ``safe_speed + safe_speed_per_m * d`` (0.2 + 0.5 d
 m/s: the drone is paid to slow down on the way in, to 0.25 m/s at the top of the success zone), ``-0.01 * |omega|``, ``+0.01`` while the pad is
 in view, ``+success_bonus`` (10) on success, ``-fail_penalty`` (5) on failure. Every term but the
 terminal ones is differentiable in the state (BPTT/SHAC: :func:`shaped_reward`).
@@ -157,7 +157,7 @@ class LandingConfig(EnvConfig):
     fail_when_pad_lost: bool = False
     success_bonus: float = 10.0
     fail_penalty: float = 5.0
-    brake_weight: float = 0.1
+    brake_weight: float = 1.0
     safe_speed: float = 0.2
     safe_speed_per_m: float = 0.5
     reward: str = "ours"
