@@ -117,7 +117,7 @@ def test_the_shaped_reward_matches_finite_differences_and_pays_a_slow_final_appr
     omega = torch.randn(3, 3, dtype=torch.float64).requires_grad_()
 
     def reward(pos, vel, omega):
-        return shaped_reward(pos, vel, omega, aim, prev, torch.ones(3, dtype=torch.float64), 0.03, 0.1, 0.3, 0.5)
+        return shaped_reward(pos, vel, omega, aim, prev, torch.ones(3, dtype=torch.float64), 0.03, 0.1, 0.3, 0.5, 0.5)
 
     assert torch.autograd.gradcheck(reward, (pos, vel, omega), eps=1e-6, atol=1e-6)
     # 0.3 m above the aim point, descending: 0.3 m/s earns more than 2 m/s, which is over 0.3 + 0.5 * 0.3.
@@ -125,8 +125,14 @@ def test_the_shaped_reward_matches_finite_differences_and_pays_a_slow_final_appr
     slow_fast = torch.tensor([[0.0, 0.0, -0.3], [0.0, 0.0, -2.0]], dtype=torch.float64)
     step = at + slow_fast * 0.03
     r = shaped_reward(step, slow_fast, torch.zeros(2, 3, dtype=torch.float64), aim[:2], torch.full((2,), 0.3, dtype=torch.float64),
-                      torch.ones(2, dtype=torch.float64), 0.03, 0.1, 0.3, 0.5)
+                      torch.ones(2, dtype=torch.float64), 0.03, 0.1, 0.3, 0.5, 0.5)
     assert r[0] > r[1]
+    # Descending at 0.5 m/s 1 m beside the pad earns 0.5 * 0.5 * 0.8 less than over it; hovering there costs nothing.
+    beside = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [1.0, 0.0, 1.0]], dtype=torch.float64) + aim
+    vel = torch.tensor([[0.0, 0.0, -0.5], [0.0, 0.0, -0.5], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    r = shaped_reward(beside, vel, torch.zeros(3, 3, dtype=torch.float64), aim, (beside - aim).norm(dim=1),
+                      torch.ones(3, dtype=torch.float64), 0.03, 1.0, 0.2, 0.5, 0.5)
+    assert r[1] == pytest.approx(r[0] - 0.2, abs=1e-9) and r[2] > r[1]
 
 
 def test_depth_landing_reward_carries_gradients_through_the_dynamics():

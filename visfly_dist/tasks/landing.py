@@ -19,7 +19,9 @@ Action: ``Box(-1, 1, (4,))`` for the configured controller (CTBR by default).
 Reward per step, ``reward="ours"`` (default; ``p`` the aim point 0.1 m above the pad centre, ``d``
 the distance to it): ``0.05 *`` approach speed to ``p`` (m/s, finite difference), minus
 ``brake_weight`` (1) times the speed above ``safe_speed + safe_speed_per_m * d`` (0.2 + 0.5 d
-m/s: the drone is paid to slow down on the way in, to 0.25 m/s at the top of the success zone), ``-0.01 * |omega|``, ``+0.01`` while the pad is
+m/s: the drone is paid to slow down on the way in, to 0.25 m/s at the top of the success zone),
+minus ``centre_weight`` (0.5) times the descent speed times the horizontal distance to the pad
+centre beyond 0.2 m (centre first, then descend), ``-0.01 * |omega|``, ``+0.01`` while the pad is
 in view, ``+success_bonus`` (10) on success, ``-fail_penalty`` (5) on failure. Every term but the
 terminal ones is differentiable in the state (BPTT/SHAC: :func:`shaped_reward`).
 ``reward="visfly"`` (VisFly's LandingEnv; ``c = (u, v) / 2`` the pad centre in VisFly's image units,
@@ -68,6 +70,9 @@ CAMERAS = {"rgb": DOWNWARD_RGB, "depth": DOWNWARD_DEPTH}
 CURRICULUM_WINDOW = 64
 """Episodes whose success rate moves the curriculum to its next level."""
 
+CENTRED = 0.2
+"""Horizontal distance to the pad centre, m, within which descending costs nothing (``centre_weight``)."""
+
 AIM_HEIGHT = 0.1
 """The aim point of the approach term: this far above the pad centre, m (a drone resting on the pad)."""
 
@@ -99,7 +104,7 @@ def pad_projection(pos: torch.Tensor, quat: torch.Tensor, pad: torch.Tensor, hfo
 
 def shaped_reward(pos: torch.Tensor, vel: torch.Tensor, omega: torch.Tensor, aim: torch.Tensor,
                   prev_distance: torch.Tensor, in_view: torch.Tensor, dt: float, brake_weight: float,
-                  safe_speed: float, safe_speed_per_m: float) -> torch.Tensor:
+                  safe_speed: float, safe_speed_per_m: float, centre_weight: float) -> torch.Tensor:
     """``(N,)`` the per-step terms of ``reward="ours"`` (no terminal terms); differentiable in the state.
 
     Args:
@@ -108,11 +113,15 @@ def shaped_reward(pos: torch.Tensor, vel: torch.Tensor, omega: torch.Tensor, aim
             distance to it (a constant), m.
         in_view: ``(N,)`` 1 while the pad is seen.
         dt: control period, s. brake_weight, safe_speed, safe_speed_per_m: the braking term.
+        centre_weight: weight of the off-centre descent term.
     """
     distance = (pos - aim).norm(dim=1)
     approach = progress_speed(prev_distance, distance, dt)
     too_fast = torch.relu(vel.norm(dim=1) - (safe_speed + safe_speed_per_m * distance))
-    return 0.05 * approach - 0.01 * omega.norm(dim=1) + 0.01 * in_view - brake_weight * too_fast
+    off_centre = torch.relu((pos[:, :2] - aim[:, :2]).norm(dim=1) - CENTRED)
+    descending_off_centre = torch.relu(-vel[:, 2]) * off_centre
+    return (0.05 * approach - 0.01 * omega.norm(dim=1) + 0.01 * in_view - brake_weight * too_fast
+            - centre_weight * descending_off_centre)
 
 
 @dataclass
@@ -138,6 +147,8 @@ class LandingConfig(EnvConfig):
             speed that grows with the distance to the aim point, ``safe_speed + safe_speed_per_m * d``,
             so the drone is paid to slow down on the way in (0 turns it off).
         safe_speed, safe_speed_per_m: that safe speed at the aim point, m/s, and its growth, 1/s.
+        centre_weight: weight of the off-centre descent term (``reward="ours"``): minus the descent
+            speed times the horizontal distance to the pad centre beyond ``CENTRED`` (0 turns it off).
         reward: ``ours`` or ``visfly`` (the original's reward).
     """
 
@@ -160,6 +171,7 @@ class LandingConfig(EnvConfig):
     brake_weight: float = 1.0
     safe_speed: float = 0.2
     safe_speed_per_m: float = 0.5
+    centre_weight: float = 0.5
     reward: str = "ours"
 
     def __post_init__(self) -> None:
@@ -183,7 +195,7 @@ class LandingConfig(EnvConfig):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 < value <= 1:
                 out.append(f"{name}={value!r} must be a number in (0, 1]")
-        for name in ("brake_weight", "safe_speed", "safe_speed_per_m"):
+        for name in ("brake_weight", "safe_speed", "safe_speed_per_m", "centre_weight"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 1e3:
                 out.append(f"{name}={value!r} must be a number in [0, 1000)")
@@ -267,7 +279,7 @@ class LandingEnv(DroneEnvBase):
                     + 0.2 * (3.0 - s.pos[:, 2]).clamp(0.0, 3.0) / 3.0 - 0.02 * speed - 0.01 * s.omega.norm(dim=1)
                     + 2.0 * self.success.float() * (10.0 + remaining) / (1.0 + 2.0 * speed))
         reward = shaped_reward(s.pos, s.vel, s.omega, self._aim(), self._prev_distance, (pad[:, 2] > 0).float(),
-                               cfg.ctrl_dt, cfg.brake_weight, cfg.safe_speed, cfg.safe_speed_per_m)
+                               cfg.ctrl_dt, cfg.brake_weight, cfg.safe_speed, cfg.safe_speed_per_m, cfg.centre_weight)
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
 
     def update_task_state(self) -> None:
