@@ -7,7 +7,8 @@ Reads each run folder's ``success_curve.csv`` (return over the last 100 episodes
 and ``progress.csv`` (``charts/steps_per_second``, the run's average so far, gives the wall time).
 With ``--eval-curve`` it reads ``eval_curve.csv`` instead (deterministic evaluation of each
 checkpoint, written by ``eval_diff_checkpoints.py``), on a log step axis (linear below 1k); ``--mark LABEL=STEPS:RETURN``
-adds a reference point (e.g. PPO's final model).
+adds a reference point (e.g. PPO's final model). ``--metric success`` plots and targets the
+success rate instead of the return.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ def main() -> None:
     parser.add_argument("--target", type=float, required=True, help="return to report steps and time to")
     parser.add_argument("--title", default="hover from state")
     parser.add_argument("--eval-curve", action="store_true", help="plot eval_curve.csv (checkpoint evaluations)")
+    parser.add_argument("--metric", choices=("return", "success"), default="return", help="what to plot and target")
     parser.add_argument("--mark", action="append", default=[], metavar="LABEL=STEPS:RETURN", help="a reference point")
     args = parser.parse_args()
     fig, ax = plt.subplots(figsize=(7, 4), constrained_layout=True)
@@ -57,17 +59,17 @@ def main() -> None:
         run = Path(folder)
         curve = read_rows(run / ("eval_curve.csv" if args.eval_curve else "success_curve.csv"))
         steps = [int(r["timesteps"]) for r in curve]
-        returns = [float(r["mean_return"]) for r in curve]
+        returns = [float(r["mean_return" if args.metric == "return" else "success_rate"]) for r in curve]
         ax.plot(steps, returns, label=label, marker="." if args.eval_curve else None)
         hit = next((i for i, r in enumerate(returns) if r >= args.target), None)
-        final = f"final return {returns[-1]:.1f} at {steps[-1]:,} steps, {wall_seconds(run, steps[-1]):.0f} s"
+        final = f"final {args.metric} {returns[-1]:.2f} at {steps[-1]:,} steps, {wall_seconds(run, steps[-1]):.0f} s"
         if hit is None:
             print(f"{label}: never reached {args.target}; {final}")
         else:
-            print(f"{label}: return >= {args.target} first at {steps[hit]:,} env steps, "
+            print(f"{label}: {args.metric} >= {args.target} first at {steps[hit]:,} env steps, "
                   f"{wall_seconds(run, steps[hit]):.0f} s wall; {final}")
     ax.axhline(args.target, color="grey", lw=0.8, ls="--")
-    ylabel = "deterministic eval return" if args.eval_curve else "mean return (last 100 episodes)"
+    ylabel = f"deterministic eval {args.metric}" if args.eval_curve else f"mean {args.metric} (last 100 episodes)"
     ax.set(xlabel="env steps (all agents)", ylabel=ylabel, title=args.title)
     if args.eval_curve:
         ax.set_xscale("symlog", linthresh=1000)

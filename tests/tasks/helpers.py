@@ -25,7 +25,7 @@ SETTINGS = {
     "navigation": dict(num_envs=2, **small((FORWARD_DEPTH,), density=0.05)),
     "navigation_moving": dict(num_envs=2, **small((FORWARD_DEPTH,), density=0.05, moving=4)),
     "hover": dict(num_envs=2, **small(target=(0.0, 0.0, 3.0))),  # the scene's goal wins
-    "landing": dict(num_envs=2, **small((DOWNWARD_RGB,))),
+    "landing": dict(num_envs=2, **small((DOWNWARD_RGB,), camera="rgb")),  # the RGB pad segmentation
     "gap_crossing": dict(num_envs=3, **small((FORWARD_DEPTH,))),
     "racing": dict(num_envs=2, **small()),
     "tracking": dict(num_envs=2, **small((FORWARD_DEPTH,))),

@@ -206,7 +206,7 @@ def test_landing_rewards_a_soft_touchdown_on_the_pad_and_fails_a_hard_or_off_pad
 def test_landing_braking_term_pays_for_slowing_down_on_the_way_in(brake_weight):
     """Two drones 1 m above the pad descend at 0.5 and 3 m/s: without the braking term the fast
     one earns more (its approach speed), with it the slow one does (3 m/s is over the safe speed
-    there, 0.3 + 0.5 * 0.9 m/s; 0.5 m/s is not)."""
+    there, 0.2 + 0.5 * 0.9 m/s; 0.5 m/s is not)."""
     from tests.tasks.helpers import SETTINGS
 
     settings = dict(SETTINGS["landing"])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import dataclasses
 from dataclasses import dataclass, field, fields
-from typing import Any, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import torch
 
@@ -55,6 +55,10 @@ class EnvConfig:
         drone_radius: collision radius of a drone, metres.
         search_radius: nearest-obstacle queries look this far, metres.
     """
+
+    evaluation_defaults: ClassVar[dict[str, Any]] = {}
+    """Settings ``visfly-dist eval`` applies over the training run's (e.g. a task's training
+    curriculum turned off); the evaluation's own ``--set`` still wins."""
 
     num_envs: int = 16
     scenes: tuple[str, ...] = ("gen:empty",)

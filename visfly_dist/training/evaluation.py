@@ -24,7 +24,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
 from visfly_dist.errors import ConfigError
-from visfly_dist.tasks import make_env
+from visfly_dist.tasks import make_env, task_class
 from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
 from visfly_dist.training.checkpoints import load_normalization, norm_path
 from visfly_dist.training.config import TrainConfig
@@ -225,11 +225,12 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
 
 def eval_config(task: str, seed: int, run_cfg: TrainConfig | None, overrides: dict[str, Any],
                 pool: dict[str, Any]) -> TrainConfig:
-    """The training run's settings (when known) with the evaluation's seed and changes."""
+    """The training run's settings (when known) with the evaluation's seed, the task's
+    ``evaluation_defaults`` and the given changes (which win)."""
     cfg = run_cfg if run_cfg is not None and run_cfg.task == task else TrainConfig(task=task)
     cfg = cfg.resolved()
     cfg.seed = seed
-    cfg.overrides = {**cfg.overrides, **overrides}
+    cfg.overrides = {**cfg.overrides, **task_class(task).config_class.evaluation_defaults, **overrides}
     for key, value in pool.items():
         if value is not None:
             setattr(cfg, key, value)
