@@ -31,9 +31,9 @@ TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     "hover": dict(num_envs=16, timesteps=100_000, n_steps=128, batch_size=512),
     # Landing: PPO's spawn curriculum (tasks/landing.py) reached the full box at 186k of 300k steps (0.31).
     "landing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512, log_std_init=-1.0),
-    # Gap crossing (5 teams of 3, LV velocity actions): 400k steps in 24 min at about 280 env
-    # steps/s; team success appeared at 50k steps, sampled 0.6-1.0 from 190k, 1.00 deterministic
-    # at 400k. Navigation at 400k steps (0.80 deterministic) did no better than at 242k (0.83).
+    # Gap crossing (5 teams of 3, LV velocity actions, walls whose gap moves): 400k steps in 15 min
+    # at about 450 env steps/s; 0.94 deterministic team success on unseen walls. Navigation at 400k
+    # steps (0.80 deterministic) did no better than at 242k (0.83).
     "gap_crossing": dict(num_envs=15, timesteps=400_000, n_steps=128, batch_size=480, log_std_init=-1.0),
     "racing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512),
     "tracking": dict(num_envs=16, timesteps=250_000, n_steps=128, batch_size=512),
