@@ -53,6 +53,14 @@ def test_train_writes_config_checkpoints_logs_and_curve(algo: str, tmp_path: Pat
         assert all(np.isfinite(float(r["losses/critic_loss"])) for r in progress)
     assert list(out.glob("events.out.tfevents.*")) and (out / "success_curve.png").stat().st_size > 1000
 
+    proc = run_cli("eval", "hover", "--checkpoint", str(out / "final.npz"), "--episodes", "2", "--num-envs", "2",
+                   "--workers", "1", "--json", str(out / "eval.json"))
+    assert proc.returncode == 0, proc.stderr
+    assert "deterministic: success" in proc.stdout and "sampled" not in proc.stdout
+    assert '"deterministic"' in (out / "eval.json").read_text()
+    proc = run_cli("eval", "hover", "--checkpoint", str(out / "final.npz"), "--mode", "sampled")
+    assert proc.returncode != 0 and "deterministic" in proc.stderr and "Traceback" not in proc.stderr
+
     env = VecMonitor(make_env("hover", num_envs=2, seed=1, max_episode_steps=12, pool=PoolConfig(num_local_workers=1)))
     try:
         stats = evaluate(load_actor(out / "final.npz", env), env, episodes=2)

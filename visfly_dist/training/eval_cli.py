@@ -12,7 +12,8 @@ the policy's mean action, ``sampled`` draws actions as in training. Each line gi
 rate with its Wilson 95 % interval and how the episodes ended; in team tasks (``gap_crossing``)
 an episode is a team's, a success only when every member succeeds. The default seed (12345) differs
 from training's, so generated scenes (seeded from the env seed) and spawns are ones training never
-saw; an equal seed is refused unless ``--allow-training-seed``. Scene files are not drawn from the
+saw; an equal seed is refused unless ``--allow-training-seed``. A BPTT/SHAC checkpoint (``.npz``)
+is a deterministic actor: it is evaluated in the deterministic mode only. Scene files are not drawn from the
 seed: hold some out of training and pass them with ``--scene-root DIR --set scenes='["held_out/*.glb"]'``.
 
 ``--video`` films agent 0 in the first mode: its first episode, or with ``--video-success`` its
@@ -37,7 +38,8 @@ MODES = {"both": (True, False), "deterministic": (True,), "sampled": (False,)}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking, navigation_moving")
-    parser.add_argument("--checkpoint", required=True, help="model .zip written by 'visfly-dist train'")
+    parser.add_argument("--checkpoint", required=True,
+                        help="model written by 'visfly-dist train': .zip (PPO) or .npz (BPTT/SHAC actor, deterministic only)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per mode (default 100)")
     parser.add_argument("--mode", choices=tuple(MODES), default="both",
                         help="deterministic (mean action), sampled (as in training), or both side by side (default)")
@@ -60,6 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.errors import ConfigError
+    from visfly_dist.training.bptt import load_actor
     from visfly_dist.training.evaluation import build_eval_env, evaluate, find_run_config, load_policy
     from visfly_dist.training.video import VideoRecorder
 
@@ -67,7 +70,12 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--episodes {args.episodes} must be >= 1")
     checkpoint = Path(args.checkpoint)
     if not checkpoint.is_file():
-        raise ConfigError(f"--checkpoint {str(checkpoint)!r} does not exist; pass a .zip written by 'visfly-dist train'")
+        raise ConfigError(f"--checkpoint {str(checkpoint)!r} does not exist; pass a .zip (PPO) or .npz (BPTT/SHAC) "
+                          "written by 'visfly-dist train'")
+    differentiable = checkpoint.suffix == ".npz"
+    if differentiable and args.mode == "sampled":
+        raise ConfigError(f"--mode sampled: {checkpoint} is a BPTT/SHAC actor, which is deterministic; use --mode deterministic")
+    modes = (True,) if differentiable else MODES[args.mode]
     run_cfg = find_run_config(checkpoint)
     train_seed = run_cfg.seed if run_cfg is not None else None
     if train_seed == args.seed and not args.allow_training_seed:
@@ -79,9 +87,12 @@ def run(args: argparse.Namespace) -> int:
     env = build_eval_env(args.task, args.num_envs, args.seed, run_cfg, overrides, pool)
     recorder, results = None, []
     try:
-        model, env = load_policy(checkpoint, env, args.device)
+        if differentiable:
+            model = load_actor(checkpoint, env.unwrapped, run_cfg.backbone if run_cfg is not None else "visfly-cnn")
+        else:
+            model, env = load_policy(checkpoint, env, args.device)
         recorder = VideoRecorder(env.unwrapped) if args.video else None
-        for k, deterministic in enumerate(MODES[args.mode]):
+        for k, deterministic in enumerate(modes):
             results.append(evaluate(model, env, args.episodes, deterministic=deterministic, seed=args.seed,
                                     recorder=recorder if k == 0 else None, film_success=args.video_success))
         if recorder is not None:
