@@ -78,3 +78,17 @@ def test_hung_worker_is_killed_replaced_and_rebalanced():
         again = _observe_until(agg, poses, balanced)  # the replacement gets its share back, in the background
         assert balanced(again), agg.assignment()
         np.testing.assert_array_equal(again.images["depth"], before.images["depth"])
+
+
+def test_an_unload_lost_on_the_way_is_retried_and_a_delivered_one_is_not():
+    """A worker that rejoins is asked to unload scenes it no longer serves. When that request gets no
+    reply (the link flapped again), the key goes back on the worker's list for the next attempt;
+    when it is answered, it does not."""
+    with make_aggregator(pool={"num_local_workers": 1}, scenes={"num_scenes": 1, "agents_per_scene": 1}) as agg:
+        worker = agg.workers[0]
+        served = agg.table.slots[0].key
+        agg._send_unloads([("ghost", "old-key"), (worker, "never-loaded")])
+        wait_for(lambda: (agg._apply_background(), not agg.background_busy())[1], 20)
+        assert agg._stale == {"ghost": {"old-key"}}  # no such worker: no reply, kept for a retry
+        held = {h["worker_id"]: h.get("scenes") for h in agg.health()}
+        assert held == {worker: [served]}  # the answered unload (unknown scene) changed nothing

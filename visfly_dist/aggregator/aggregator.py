@@ -417,9 +417,14 @@ class Aggregator:
         """A worker that dropped off the network and rejoined still holds scenes it no longer serves:
         unload them (a restarted one answers ``unknown_scene``, which is fine)."""
         back = [w for w in live if w in self._stale]
-        requests = [(w, UnloadScene(k).to_message()) for w in back for k in sorted(self._stale.pop(w))]
-        for pending in self._pool.send(requests, self.pool_config.step_timeout_s) if requests else []:
-            self._background.append(_Background("unload", pending))
+        self._send_unloads([(w, k) for w in back for k in sorted(self._stale.pop(w))])
+
+    def _send_unloads(self, targets: Sequence[tuple[str, str]]) -> None:
+        """Ask each ``(worker, key)`` to unload in the background; one that gets no reply is retried
+        when the worker is next seen live (:meth:`_apply_background`)."""
+        requests = [(w, UnloadScene(k).to_message()) for w, k in targets]
+        for target, pending in zip(targets, self._pool.send(requests, self.pool_config.step_timeout_s) if requests else []):
+            self._background.append(_Background("unload", pending, spec=target))
 
     def _handle_failure(self, reply: Reply, slots: Sequence[int] = ()) -> None:
         """The one failure policy: what a failed or refused request does to its worker and slots."""
@@ -480,9 +485,7 @@ class Aggregator:
         """Take in every finished background request; switch slots whose scene (and spawns) are ready."""
         due = [(w, k) for c, w, k in self._unloads if c <= self._collects]
         self._unloads = [u for u in self._unloads if u[0] > self._collects]
-        if due:
-            for pending in self._pool.send([(w, UnloadScene(k).to_message()) for w, k in due], self.pool_config.step_timeout_s):
-                self._background.append(_Background("unload", pending))
+        self._send_unloads(due)
         still = []
         for job in self._background:
             if not job.pending.done():
@@ -493,6 +496,9 @@ class Aggregator:
                 self._finish_load(job, reply, still)
             elif job.kind == "spawn":
                 self._finish_spawn(job, reply, still)
+            elif reply.failure is not None:  # an unload lost on the way (a flapping link): try again later
+                worker, key = job.spec
+                self._stale.setdefault(worker, set()).add(key)
         self._background = still
 
     def _finish_load(self, job: _Background, reply: Reply, still: list[_Background]) -> None:
