@@ -66,10 +66,10 @@ def conv_maxpool2(x: torch.Tensor, conv: torch.nn.Conv2d) -> torch.Tensor:
     Uses the phase form (returning a channels-last tensor) for at most ``PHASE_MAX_IN_CHANNELS``
     input channels when :func:`phase_form_applies`, else the plain convolution and pool.
     """
-    kernel = conv.kernel_size[0]
-    plain = (conv.in_channels > PHASE_MAX_IN_CHANNELS or conv.stride != (1, 1) or conv.padding != (0, 0) or conv.dilation != (1, 1) or conv.groups != 1
-             or conv.kernel_size[0] != conv.kernel_size[1] or not phase_form_applies(x.shape[2], x.shape[3], kernel))
-    if plain:
+    kernel, other = conv.kernel_size
+    simple = conv.stride == (1, 1) and conv.padding == (0, 0) and conv.dilation == (1, 1) and conv.groups == 1
+    if (conv.in_channels > PHASE_MAX_IN_CHANNELS or not simple or kernel != other
+            or not phase_form_applies(x.shape[2], x.shape[3], kernel)):
         return F.max_pool2d(conv(x), 2)
     batch, out_ch = x.shape[0], conv.out_channels
     unshuffled = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last)

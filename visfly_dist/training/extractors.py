@@ -112,7 +112,8 @@ def visfly_cnn(in_channels: int) -> nn.Sequential:
 
     Each convolution is followed by a 2x2 max-pool and a ReLU: the same function as ReLU then pool
     (both are monotone, so they commute), with the ReLU on a quarter of the values. Convolution and
-    pool run fused (:class:`ConvPoolSequential`), which is 2-5x faster on CPU for these small layers.
+    pool run fused (:class:`ConvPoolSequential`); on the first layer that made the extractor's
+    forward and backward pass about 1.2x faster on CPU, and its inference about 1.4x.
     """
     layers: list[nn.Module] = []
     for out_channels, kernel in zip((6, 12, 18), (5, 3, 3)):
