@@ -46,3 +46,14 @@ def test_env_kwargs_map_flags_onto_the_task_pool_and_cameras() -> None:
     assert "pool" not in env_kwargs(TrainConfig(task="hover"))  # the task's own pool stays untouched
     with pytest.raises(ConfigError, match="unknown task 'hovr'"):
         env_kwargs(TrainConfig(task="hovr", workers=1))
+
+
+def test_landing_trains_with_bptt_by_default_and_with_ppo_defaults_under_algo_ppo():
+    landing = TrainConfig(task="landing").resolved()
+    assert (landing.algo, landing.num_envs, landing.horizon, landing.lr, landing.timesteps) == ("bptt", 8, 16, 3e-3, 100_000)
+    ppo = TrainConfig(task="landing", algo="ppo").resolved()
+    assert (ppo.algo, ppo.num_envs, ppo.lr, ppo.timesteps) == ("ppo", 16, 3e-4, 300_000)
+    assert TrainConfig(task="landing", lr=1e-3).resolved().lr == 1e-3  # given values win
+    hover = TrainConfig(task="hover", algo="bptt").resolved()
+    assert (hover.algo, hover.horizon, hover.lr, hover.num_envs) == ("bptt", 32, 3e-4, 16)
+    assert TrainConfig(task="navigation").resolved().algo == "ppo"

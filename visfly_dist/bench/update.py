@@ -55,7 +55,7 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
     from visfly_dist.training.native_kernels import load_kernels
 
     keep_freed_memory()
-    cfg = TrainConfig(task=task).resolved()
+    cfg = TrainConfig(task=task, algo="ppo").resolved()
     obs_space = observation_space(task)
     action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
     torch.manual_seed(seed)

@@ -29,7 +29,8 @@ TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # deterministic policy (0.12 success against 0.66 sampled) did not fly what training learned.
     "navigation": dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512, log_std_init=-1.0),
     "hover": dict(num_envs=16, timesteps=100_000, n_steps=128, batch_size=512),
-    # Landing: PPO's spawn curriculum (tasks/landing.py) reached the full box at 186k of 300k steps (0.31).
+    # Landing with PPO (``--algo ppo``): its spawn curriculum (tasks/landing.py) reached the full
+    # box at 186k of 300k steps (0.31). Landing trains with BPTT by default, see GRADIENT_DEFAULTS.
     "landing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512, log_std_init=-1.0),
     # Gap crossing (5 teams of 3, LV velocity actions, walls whose gap moves): 400k steps in 15 min
     # at about 450 env steps/s; 0.94 deterministic team success on unseen walls. Navigation at 400k
@@ -42,8 +43,20 @@ TASK_DEFAULTS: dict[str, dict[str, Any]] = {
 
 FALLBACK_DEFAULTS: dict[str, Any] = dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512)
 
-COMMON_DEFAULTS: dict[str, Any] = dict(log_std_init=0.0)
+COMMON_DEFAULTS: dict[str, Any] = dict(log_std_init=0.0, lr=3e-4, horizon=32)
 """Defaults of every task unless ``TASK_DEFAULTS`` names its own (SB3's initial log std: 0)."""
+
+DEFAULT_ALGOS: dict[str, str] = {
+    # Landing's reward is differentiable (tasks/landing.py): BPTT landed 1.00 of 100 episodes from
+    # the whole spawn box after 50k steps, where PPO reached 0.31 after 300k.
+    "landing": "bptt",
+}
+"""The algorithm ``visfly-dist train TASK`` uses without ``--algo``; ``ppo`` for tasks not listed."""
+
+GRADIENT_DEFAULTS: dict[str, dict[str, Any]] = {
+    "landing": dict(num_envs=8, timesteps=100_000, horizon=16, lr=3e-3),
+}
+"""Task defaults for ``bptt``/``shac`` runs, over ``TASK_DEFAULTS`` (which are PPO's)."""
 
 
 def parse_override(item: str) -> tuple[str, Any]:
@@ -87,7 +100,7 @@ class TrainConfig:
             threads waiting for a core).
         n_steps: rollout length per env between updates.
         batch_size: PPO minibatch size.
-        lr: Adam learning rate.
+        lr: Adam learning rate (``None``: 3e-4, or the task's for ``bptt``/``shac``).
         n_epochs: passes over each rollout.
         gamma: discount.
         gae_lambda: GAE lambda.
@@ -106,8 +119,9 @@ class TrainConfig:
             must lie under one of them.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
         algo: ``ppo``, or ``bptt`` / ``shac`` (differentiable, through the dynamics; they use
-            ``lr``, ``gamma``, ``horizon``, and SHAC's critic ``gae_lambda``, ``n_epochs``, ``batch_size``).
-        horizon: BPTT/SHAC window length, steps (the graph is cut between windows).
+            ``lr``, ``gamma``, ``horizon``, and SHAC's critic ``gae_lambda``, ``n_epochs``, ``batch_size``);
+            ``None``: the task's (``DEFAULT_ALGOS``, else ``ppo``).
+        horizon: BPTT/SHAC window length, steps (the graph is cut between windows; ``None``: 32 or the task's).
     """
 
     task: str
@@ -124,7 +138,7 @@ class TrainConfig:
     update_threads: int | None = None
     n_steps: int | None = None
     batch_size: int | None = None
-    lr: float = 3e-4
+    lr: float | None = None
     n_epochs: int = 5
     gamma: float = 0.99
     gae_lambda: float = 0.95
@@ -138,15 +152,18 @@ class TrainConfig:
     overlap: bool = False
     scene_roots: tuple[str, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
-    algo: str = "ppo"
-    horizon: int = 32
+    algo: str | None = None
+    horizon: int | None = None
 
     def resolved(self) -> "TrainConfig":
-        """A copy with task defaults filled in and ``out`` set."""
+        """A copy with the algorithm and the task's defaults for it filled in, and ``out`` set."""
+        algo = self.algo if self.algo is not None else DEFAULT_ALGOS.get(self.task, "ppo")
         defaults = {**COMMON_DEFAULTS, **TASK_DEFAULTS.get(self.task, FALLBACK_DEFAULTS)}
+        if algo in ("bptt", "shac"):
+            defaults.update(GRADIENT_DEFAULTS.get(self.task, {}))
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
-                      overrides=dict(self.overrides), **filled)
+                      overrides=dict(self.overrides), algo=algo, **filled)
         if cfg.out is None:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg

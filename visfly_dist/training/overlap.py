@@ -9,10 +9,18 @@ while the workers render. :class:`OverlappedPPO` keeps both busy, as asynchronou
 
 When an update starts, a frozen copy of the current policy (the *behaviour* policy) starts
 collecting the next rollout in a background thread, into a second buffer, while the update runs.
-The next update waits for that rollout and learns from it. Each sample's log-probability and value
-come from the behaviour policy, so PPO's clipped ratio accounts for the lag, which is exactly one
-update (``train/policy_lag_updates``). Torch releases the GIL inside its kernels and the env waits
-on the workers without the GIL, so the two threads overlap.
+The next update waits for that rollout and learns from it; the lag is exactly one update
+(``train/policy_lag_updates``). Torch releases the GIL inside its kernels and the env waits on the
+workers without the GIL, so the two threads overlap.
+
+The lag is corrected with decoupled PPO (Hilton et al., 2022, "Batch size-invariance for policy
+optimization"): plain PPO would clip the ratio to the behaviour policy, which is already one update
+away from the policy being trained, so the first epoch starts with clipped samples and learns less
+per sample. Before each update on a lagged rollout, the log-probabilities of its actions are
+recomputed under the current policy (the *proximal* policy, one forward pass), PPO clips around
+those, and each sample's advantage is weighted by ``pi_prox / pi_behaviour`` (truncated at
+:data:`IMPORTANCE_CLIP`), which keeps the objective's gradient that of the behaviour data
+(``train/importance_weight_mean``).
 
 Callbacks and episode statistics are replayed on the main thread when the rollout is taken in, so
 they see the same ``infos``/``dones`` sequence as with SB3's own ``collect_rollouts``.
@@ -38,6 +46,11 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
 from visfly_dist.training.threads import UpdateThreadChooser
+
+IMPORTANCE_CLIP = 2.0
+"""Truncation of the proximal/behaviour importance weights of a lagged rollout (as V-trace truncates)."""
+PROXIMAL_CHUNK = 512
+"""Samples per forward pass when the proximal log-probabilities are recomputed."""
 
 
 class UpdateThreadsPPO(PPO):
@@ -93,9 +106,11 @@ class OverlappedPPO(PPO):
         self._worker: threading.Thread | None = None
         self._collected: dict[str, Any] | None = None
         self._behaviour: Any = None  # the frozen copy of the policy that collects the next rollout
+        self._lagged = False  # whether self.rollout_buffer was collected by an older policy
 
     def _excluded_save_params(self) -> list[str]:
-        return super()._excluded_save_params() + ["_next_buffer", "_worker", "_collected", "_behaviour", "phase_seconds"]
+        return super()._excluded_save_params() + ["_next_buffer", "_worker", "_collected", "_behaviour", "_lagged",
+                                                  "phase_seconds"]
 
     # ----- the two phases ---------------------------------------------------------------------
 
@@ -116,6 +131,7 @@ class OverlappedPPO(PPO):
         if "error" in collected:
             raise collected["error"]
         self.rollout_buffer, self._next_buffer = self._next_buffer, self.rollout_buffer
+        self._lagged = True
         self._last_obs = collected["last_obs"]
         self._last_episode_starts = collected["episode_starts"]
         self.phase_seconds["rollout_s"] += collected["seconds"]
@@ -127,6 +143,10 @@ class OverlappedPPO(PPO):
         if remaining > 0:
             self._start_collection()
         t0 = time.perf_counter()
+        if self._lagged:
+            weights = decouple_lagged_rollout(self.policy, self.rollout_buffer)
+            self.logger.record("train/importance_weight_mean", float(weights.mean()))
+            self._lagged = False
         super().train()
         self.phase_seconds["update_s"] += time.perf_counter() - t0
         self.logger.record("train/policy_lag_updates", 1 if remaining > 0 else 0)
@@ -204,3 +224,32 @@ class OverlappedPPO(PPO):
             self._update_info_buffer(infos, dones)
         callback.on_rollout_end()
         return True
+
+
+def decouple_lagged_rollout(policy: Any, buffer: RolloutBuffer) -> np.ndarray:
+    """Turn ``buffer`` (collected by an older policy, before ``buffer.get``) into a decoupled-PPO batch.
+
+    The stored log-probabilities become the current (proximal) policy's, so PPO's ratio is clipped
+    around it, and each advantage is multiplied by ``min(pi_prox / pi_behaviour, IMPORTANCE_CLIP)``.
+    Returns the weights, ``(n_steps, n_envs)``.
+    """
+    proximal = np.empty_like(buffer.log_probs)
+    steps = max(1, PROXIMAL_CHUNK // buffer.n_envs)
+    with torch.no_grad():
+        for start in range(0, buffer.buffer_size, steps):
+            rows = slice(start, start + steps)
+            if isinstance(buffer.observations, dict):
+                obs = {k: _flat_tensor(v[rows], policy.device) for k, v in buffer.observations.items()}
+            else:
+                obs = _flat_tensor(buffer.observations[rows], policy.device)
+            _, log_prob, _ = policy.evaluate_actions(obs, _flat_tensor(buffer.actions[rows], policy.device))
+            proximal[rows] = log_prob.cpu().numpy().reshape(proximal[rows].shape)
+    weights = np.minimum(np.exp(proximal - buffer.log_probs), IMPORTANCE_CLIP).astype(buffer.advantages.dtype)
+    buffer.advantages *= weights
+    buffer.log_probs[:] = proximal
+    return weights
+
+
+def _flat_tensor(array: np.ndarray, device: Any) -> torch.Tensor:
+    """``(steps, n_envs, ...)`` -> a ``(steps * n_envs, ...)`` tensor (the layout ``buffer.get`` yields)."""
+    return torch.as_tensor(array.reshape(-1, *array.shape[2:]), device=device)

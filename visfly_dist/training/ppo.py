@@ -137,7 +137,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     Raises:
         ConfigError: a bad setting, raised before any worker starts.
     """
-    cfg = cfg.resolved().validate()
+    cfg = replace(cfg, algo="ppo").resolved().validate()
     torch.set_num_threads(cfg.threads)
     keep_freed_memory()
     run_dir = Path(cfg.out)

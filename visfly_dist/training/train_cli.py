@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-steps", type=int, help="rollout steps per env between updates")
     parser.add_argument("--batch-size", type=int, help="PPO minibatch size")
     parser.add_argument("--n-epochs", type=int, default=5, help="passes over each rollout (default 5)")
-    parser.add_argument("--lr", type=float, default=3e-4, help="learning rate (default 3e-4)")
+    parser.add_argument("--lr", type=float, help="learning rate (default 3e-4; per task for bptt/shac)")
     parser.add_argument("--gamma", type=float, default=0.99, help="discount (default 0.99)")
     parser.add_argument("--ent-coef", type=float, default=0.0, help="entropy bonus (default 0)")
     parser.add_argument("--log-std-init", type=float, help="initial log std of the action noise (default: per task)")
@@ -66,8 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
-    parser.add_argument("--algo", choices=ALGOS, default="ppo", help="ppo (default), or bptt / shac through the dynamics")
-    parser.add_argument("--horizon", type=int, default=32, help="bptt/shac window, steps (default 32)")
+    parser.add_argument("--algo", choices=ALGOS, help="ppo, or bptt / shac through the dynamics (default: ppo; "
+                        "landing: bptt)")
+    parser.add_argument("--horizon", type=int, help="bptt/shac window, steps (default 32; per task)")
     parser.set_defaults(func=run)
 
 
@@ -118,9 +119,10 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 def run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
-    if cfg.algo == "bptt":
+    algo = cfg.resolved().algo
+    if algo == "bptt":
         from visfly_dist.training.bptt import train_bptt as train
-    elif cfg.algo == "shac":
+    elif algo == "shac":
         from visfly_dist.training.shac import train_shac as train
     else:
         from visfly_dist.training.ppo import train
