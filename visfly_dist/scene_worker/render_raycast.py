@@ -207,7 +207,7 @@ class RaycastRenderer(Renderer):
             shape = (n, cam.height, cam.width)
             right, down = self._slopes[cam.name]
             rgb = cam.kind == "rgb"
-            dest = None if out is None else out[cam.name].reshape(shape)  # a view: out is C-contiguous
+            dest = None if out is None or rgb else out[cam.name].reshape(shape)  # a view: out is C-contiguous
             batches.append(render_native.Batch(
                 self._native, right, down, cam.near, cam.far, origins.astype(np.float32),
                 np.ascontiguousarray(rots, dtype=np.float32),
