@@ -204,3 +204,10 @@ def test_workers_that_see_another_dev_shm_step_inline(tmp_path, monkeypatch):
             assert not obs.lost.any() and list(tmp_path.iterdir()) == []
         (health,) = agg.health()
         assert health["image_segments"] == {}
+
+
+def test_no_room_for_a_segment_means_inline_images(monkeypatch, tmp_path):
+    monkeypatch.setattr(image_shm, "SHM_DIR", str(tmp_path / "missing"))
+    segments = ImageSegments(RUN, CAMS)
+    assert segments.offer("w", 1, 4) is None and segments.offer("w", 1, 4) is None
+    assert segments.files() == []

@@ -121,7 +121,13 @@ class ImageSegments:
                 self._retire(small)
             if len([s for s in mine if not s.retired]) >= MAX_PER_WORKER:
                 return None
-            seg = self._create(worker_id, generation, need)
+            try:
+                seg = self._create(worker_id, generation, need)
+            except OSError as exc:  # no /dev/shm, or no room in it: images travel inline
+                log.warning("cannot create an image segment of %d bytes in %s (%s); images travel inline",
+                            need, SHM_DIR, exc)
+                self._refused.add((worker_id, generation))
+                return None
             mine.append(seg)
         seg.busy = True
         self._seq += 1
@@ -133,7 +139,7 @@ class ImageSegments:
         path = os.path.join(SHM_DIR, name)
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
         try:
-            os.ftruncate(fd, size)
+            os.posix_fallocate(fd, 0, size)  # the pages exist now: a full /dev/shm fails here, not as SIGBUS later
             mm = mmap.mmap(fd, size)
         except BaseException:
             os.unlink(path)
