@@ -2,6 +2,8 @@
 
 It ties three parts together: the slot table (:mod:`.slots`, pure placement plans), the worker
 pool (:mod:`.pool`, the only I/O) and the assembler (:mod:`.assembler`, replies into buffers).
+Workers on this host write their images into image segments (:mod:`.image_shm`, with shared
+memory on) instead of the reply.
 
 One step is :meth:`Aggregator.submit` then :meth:`Aggregator.collect`: ``submit`` groups the poses
 by worker and sends ONE request per worker (with the spawn poses of agents about to reset, so
