@@ -211,3 +211,16 @@ def test_no_room_for_a_segment_means_inline_images(monkeypatch, tmp_path):
     segments = ImageSegments(RUN, CAMS)
     assert segments.offer("w", 1, 4) is None and segments.offer("w", 1, 4) is None
     assert segments.files() == []
+
+
+def test_a_segment_grows_by_a_new_file_and_keeps_room_for_varying_rows():
+    segments = ImageSegments(RUN, CAMS)
+    first = segments.offer("w", 1, 9)
+    assert segments.release(first)
+    again = segments.offer("w", 1, 16)  # room for 16 rows was made for 9
+    assert again.segment is first.segment and segments.release(again)
+    bigger = segments.offer("w", 1, 17)
+    assert bigger.segment is not first.segment and bigger.target.name != first.target.name
+    assert segments.files() == [f"/dev/shm/{bigger.target.name}"]  # the small one was unlinked
+    segments.close()
+    assert _shm_files(RUN) == []

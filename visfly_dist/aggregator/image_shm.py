@@ -1,8 +1,9 @@
 """The learner's image segments: ``/dev/shm`` files that workers on this host write their images into.
 
 Per worker (and worker generation) the learner holds a few segments (:data:`MAX_PER_WORKER`), one
-per request in flight: a request takes a free segment big enough for its rows, or a new one (a
-segment that is too small is retired, never resized: a new file gets a new name). The step request
+per request in flight: a request takes a free segment big enough for its rows, or a new one with
+room for the next power of two of rows (a segment that is too small is retired, never resized: a
+new file gets a new name). The step request
 names it (:class:`~visfly_dist.protocol.image_segment.SegmentTarget`); the worker proves it is on
 this host by finding the nonce there, writes the images, then the request's sequence number.
 
@@ -121,8 +122,8 @@ class ImageSegments:
                 self._retire(small)
             if len([s for s in mine if not s.retired]) >= MAX_PER_WORKER:
                 return None
-            try:
-                seg = self._create(worker_id, generation, need)
+            try:  # room for the next power of two of rows: spawn rows vary step to step
+                seg = self._create(worker_id, generation, layout(self.cameras, 1 << (rows - 1).bit_length())[1])
             except OSError as exc:  # no /dev/shm, or no room in it: images travel inline
                 log.warning("cannot create an image segment of %d bytes in %s (%s); images travel inline",
                             need, SHM_DIR, exc)
