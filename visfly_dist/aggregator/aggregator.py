@@ -328,11 +328,11 @@ class Aggregator:
         t0 = time.perf_counter()
         worker_timings = []
         for part, reply in zip(ticket.parts, replies):
-            message = self._segment_images(part, reply)
-            if message is None:
-                self._handle_failure(reply if reply.message is None else Reply(reply.worker_id, failure=(
-                    f"image segment {part.lease.target.name} does not hold the images of this request")), part.slots)
+            reply = self._segment_images(part, reply)
+            if reply.message is None:
+                self._handle_failure(reply, part.slots)
                 continue
+            message = reply.message
             n_obs = len(part.obs_rows)
             worker_timings.append(dict(message.get("timings", {})))
             head = {k: (v[:n_obs] if k != "images" else {c: img[:n_obs] for c, img in v.items()})
@@ -360,19 +360,19 @@ class Aggregator:
                                            time.perf_counter() - ticket.started)
         return ticket.obs, ticket.spawn_obs
 
-    def _segment_images(self, part: _WorkerPart, reply: Reply) -> dict[str, Any] | None:
-        """The reply's message with its images (views of the image segment if the worker wrote them
-        there), or None when the request failed or the segment does not hold this request's images."""
+    def _segment_images(self, part: _WorkerPart, reply: Reply) -> Reply:
+        """``reply`` with its images in its message (views of the image segment when the worker wrote
+        them there); a failure when the segment does not hold this request's images."""
         lease = part.lease
         if lease is None or reply.message is None:
             if lease is not None:
                 self._images.release(lease, failed=reply.failure is not None)
-            return reply.message
+            return reply
         views, problem = self._images.images(lease, reply.message)
         if problem:
             self._images.release(lease, failed=True)
-            return None
-        return reply.message if views is None else {**reply.message, "images": views}
+            return Reply(reply.worker_id, failure=problem)
+        return reply if views is None else Reply(reply.worker_id, message={**reply.message, "images": views})
 
     def take_switched(self) -> np.ndarray:
         """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
