@@ -224,3 +224,18 @@ def test_a_segment_grows_by_a_new_file_and_keeps_room_for_varying_rows():
     assert segments.files() == [f"/dev/shm/{bigger.target.name}"]  # the small one was unlinked
     segments.close()
     assert _shm_files(RUN) == []
+
+
+def test_a_worker_without_shared_memory_refuses_segments(worker_factory):
+    proc = worker_factory(RUN, shm=False)
+    segments = ImageSegments(RUN, CAMS)
+    with client_session(proc.endpoint, shm=False) as session:
+        assert call(session, proc.rpc_key, LoadScene("a", "gen:pillars?seed=4", CAMS).to_message(), timeout=60.0)[0]
+        lease = segments.offer(proc.worker_id, 1, 2)
+        poses = _poses(2)
+        ok, reply = call(session, proc.rpc_key, StepRequest((ScenePoses("a", poses),), image_segment=lease.target)
+                         .to_message())
+        assert ok and "--no-shm" in reply["segment_refused"] and reply["images"]["depth"].shape == (2, 1, 24, 32)
+        assert segments.images(lease, reply) == (None, "") and segments.release(lease)
+        assert segments.offer(proc.worker_id, 1, 2) is None
+    segments.close()

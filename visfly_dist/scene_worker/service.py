@@ -420,7 +420,9 @@ class SceneWorker:
         segment target), else fresh arrays for the reply (and None, with ``segment_refused`` set
         when a segment was offered)."""
         target = request.image_segment
-        if target is not None:
+        if target is not None and not self.session_config.shared_memory:
+            reply["segment_refused"] = f"worker {self.worker_id!r} runs without shared memory (--no-shm)"
+        elif target is not None:
             views, why = self._segments.views(target, cameras, rows)
             if views is not None:
                 return views, target
