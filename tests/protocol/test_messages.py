@@ -173,3 +173,19 @@ def test_valid_requests_parse_to_float64_poses_and_normalised_cameras():
     assert req.scenes[0].poses.dtype == np.float64 and req.search_radius == 5.0
     load = parse_request(_load(cameras=[{"name": "down", "rotation": [2.0, 0.0, 2.0, 0.0]}]))
     np.testing.assert_allclose(load.cameras[0].rotation, [math.sqrt(0.5), 0, math.sqrt(0.5), 0])
+
+
+def test_an_image_segment_target_survives_the_codec_and_bad_ones_are_refused():
+    from visfly_dist.protocol.image_segment import SegmentTarget
+
+    target = SegmentTarget("visfly-img-run-w0-00ff", b"n" * 16, 4096, 7, {"depth": 64})
+    step = StepRequest((ScenePoses("a", np.array([[0, 0, 1, 1, 0, 0, 0]], np.float32)),), image_segment=target)
+    assert parse_request(decode(encode(step.to_message()))).image_segment == target
+    assert parse_request(decode(encode(StepRequest(step.scenes).to_message()))).image_segment is None
+    for bad, match in ((dict(extra=1), "must be a map of name, nonce, size, seq, blocks"),
+                       (dict(blocks={"depth": 4096}), "offsets in"), (dict(size=True), "size=True"),
+                       (dict(name="visfly-img-a\x00b"), "no path separators")):
+        message = step.to_message()
+        message["image_segment"] = {**target.to_message(), **bad}
+        with pytest.raises(ProtocolError, match=match):
+            parse_request(decode(encode(message)))

@@ -2,6 +2,8 @@
 
 It ties three parts together: the slot table (:mod:`.slots`, pure placement plans), the worker
 pool (:mod:`.pool`, the only I/O) and the assembler (:mod:`.assembler`, replies into buffers).
+Workers on this host write their images into image segments (:mod:`.image_shm`, with shared
+memory on) instead of the reply.
 
 One step is :meth:`Aggregator.submit` then :meth:`Aggregator.collect`: ``submit`` groups the poses
 by worker and sends ONE request per worker (with the spawn poses of agents about to reset, so
@@ -39,6 +41,7 @@ from visfly_dist.aggregator.assembler import (
 )
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
+from visfly_dist.aggregator.image_shm import ImageSegments, Lease
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.slots import Move, SlotTable
 from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
@@ -66,6 +69,7 @@ class _WorkerPart:
     slots: list[int]
     obs_rows: np.ndarray     # rows of ticket.obs, in reply order
     spawn_rows: np.ndarray   # rows of ticket.spawn_obs, after those
+    lease: Lease | None      # the image segment the worker was asked to write into, if any
 
 
 @dataclass
@@ -151,6 +155,7 @@ class Aggregator:
         self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
         self._rng = np.random.default_rng(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
+        self._images = ImageSegments(self.run_id, cameras) if pool.shared_memory else None
         self._started = False
         self._closed = False
 
@@ -195,6 +200,8 @@ class Aggregator:
             return
         self._closed = True
         self._pool.close()
+        if self._images is not None:
+            self._images.close()
 
     def __enter__(self) -> "Aggregator":
         return self.start()
@@ -283,13 +290,15 @@ class Aggregator:
             s_keys, s_counts, s_rows, _ = spawn_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
             poses_w = np.concatenate([rows[o_rows], spawn_rows[s_rows]])
             times = np.full(len(o_keys) + len(s_keys), float(sim_time)) if sim_time else None
+            lease = None if self._images is None else self._images.offer(wid, self._pool.generation(wid), len(poses_w))
             message = step_message(o_keys + s_keys, np.array(o_counts + s_counts, np.int32), poses_w,
-                                   search_radius=self.search_radius, times=times)
+                                   search_radius=self.search_radius, times=times,
+                                   image_segment=None if lease is None else lease.target)
             requests.append((wid, message))
-            parts.append((o_slots, o_rows, s_rows))
+            parts.append((o_slots, o_rows, s_rows, lease))
         t0 = time.perf_counter()
-        for (slots, o_rows, s_rows), pending in zip(parts, self._pool.send(requests, self.pool_config.step_timeout_s)):
-            ticket.parts.append(_WorkerPart(pending, slots, o_rows, s_rows))
+        for part, pending in zip(parts, self._pool.send(requests, self.pool_config.step_timeout_s)):
+            ticket.parts.append(_WorkerPart(pending, *part))
         ticket.timings.fanout_s = time.perf_counter() - t0
         ticket.timings.extra["plan_s"] = t0 - t_start
         return ticket
@@ -319,11 +328,12 @@ class Aggregator:
         t0 = time.perf_counter()
         worker_timings = []
         for part, reply in zip(ticket.parts, replies):
+            reply = self._segment_images(part, reply)
             if reply.message is None:
                 self._handle_failure(reply, part.slots)
                 continue
-            n_obs = len(part.obs_rows)
             message = reply.message
+            n_obs = len(part.obs_rows)
             worker_timings.append(dict(message.get("timings", {})))
             head = {k: (v[:n_obs] if k != "images" else {c: img[:n_obs] for c, img in v.items()})
                     for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
@@ -332,6 +342,12 @@ class Aggregator:
             scatter_reply(ticket.obs, part.obs_rows, head, self.cameras, reply.worker_id)
             if len(part.spawn_rows):
                 scatter_reply(ticket.spawn_obs, part.spawn_rows, tail, self.cameras, reply.worker_id)
+            if part.lease is not None and not self._images.release(part.lease):
+                ticket.obs.lost[part.obs_rows] = True
+                ticket.spawn_obs.lost[part.spawn_rows] = True
+                self._handle_failure(Reply(reply.worker_id, failure=(
+                    f"image segment {part.lease.target.name} was written over while its images were read")),
+                    part.slots)
         stale = np.flatnonzero(ticket.obs.lost)
         if len(stale):
             copy_rows(ticket.obs, stale, self._last, ticket.agents[stale])
@@ -343,6 +359,20 @@ class Aggregator:
         ticket.obs.timings = self._timings(ticket.timings, worker_timings, assemble_s,
                                            time.perf_counter() - ticket.started)
         return ticket.obs, ticket.spawn_obs
+
+    def _segment_images(self, part: _WorkerPart, reply: Reply) -> Reply:
+        """``reply`` with its images in its message (views of the image segment when the worker wrote
+        them there); a failure when the segment does not hold this request's images."""
+        lease = part.lease
+        if lease is None or reply.message is None:
+            if lease is not None:
+                self._images.release(lease, failed=reply.failure is not None)
+            return reply
+        views, problem = self._images.images(lease, reply.message)
+        if problem:
+            self._images.release(lease, failed=True)
+            return Reply(reply.worker_id, failure=problem)
+        return reply if views is None else Reply(reply.worker_id, message={**reply.message, "images": views})
 
     def take_switched(self) -> np.ndarray:
         """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
@@ -436,6 +466,8 @@ class Aggregator:
             reason = reply.failure or "failed"
             others = [w for w in self._pool.live_workers() if w != reply.worker_id]
             self._pool.drop(reply.worker_id, reason, replace=bool(others))
+            if self._images is not None:
+                self._images.drop_worker(reply.worker_id)
         self._orphan(reply.worker_id, reason)
 
     # ----- background work -------------------------------------------------------------------
@@ -445,6 +477,8 @@ class Aggregator:
         self._pool.respawn_exited()
         live = self._pool.live_workers()
         gens = {w: self._pool.generation(w) for w in live}
+        if self._images is not None:
+            self._images.keep_only(gens)
         for s in self.table.slots:
             if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
                 why = "liveliness token gone" if s.worker not in gens else "restarted"

@@ -3,9 +3,10 @@
 A step request to one worker carries its agents' poses as one array; its reply carries every array
 (images per camera, collision, inside, nearest, distance) with the rows in request order. The
 assembler knows, per request, which observation row each reply row belongs to, so each reply array
-costs one indexed copy (``out[rows] = reply``) from a read-only view on the received payload
-(:func:`visfly_dist.protocol.codec.decode`): renderer output -> payload (worker) -> buffer (here)
-are the only two copies of an image before it becomes a torch tensor (``torch.from_numpy``).
+costs one indexed copy (``out[rows] = reply``) from a read-only view: of the image segment the
+worker traced into (:mod:`.image_shm`, one copy of an image in all before it becomes a torch
+tensor with ``torch.from_numpy``), or of the received payload for inline images
+(:func:`visfly_dist.protocol.codec.decode`).
 """
 
 from __future__ import annotations

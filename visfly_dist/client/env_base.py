@@ -512,11 +512,10 @@ class DroneEnvBase(VecEnv):
     def _sb3_infos(self, terminated: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> list[dict[str, Any]]:
         flags = {k: info[k].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
         done = (terminated | truncated).cpu().numpy()
-        trunc = truncated.cpu().numpy()
+        columns = zip(flags["success"].tolist(), flags["collision"].tolist(), flags["out_of_bounds"].tolist(),
+                      truncated.cpu().numpy().tolist())  # Python bools at once, not one numpy scalar per env
         infos: list[dict[str, Any]] = [
-            {"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
-             "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(trunc[i])}
-            for i in range(len(done))]
+            {"is_success": s, "collision": c, "out_of_bounds": o, "TimeLimit.truncated": t} for s, c, o, t in columns]
         if done.any():
             terminal = self.to_numpy(info["terminal_observation"])
             ret = info["episode_return"].cpu().numpy()

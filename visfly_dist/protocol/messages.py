@@ -15,6 +15,7 @@ import numpy as np
 
 from visfly_dist.errors import ConfigError, ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.image_segment import SegmentTarget
 from visfly_dist.protocol.keys import check_chunk
 
 MAX_AGENTS_PER_REQUEST = 100_000
@@ -80,18 +81,23 @@ class StepRequest:
     appear more than once (e.g. the spawn poses of a scene's reset agents next to its flying ones);
     in multi-agent scenes the drones of one entry see each other. Optional ``"times": (m,) f64``
     gives each entry's simulation time in seconds (where the moving obstacles are drawn and
-    queried; absent: 0 for every entry): the worker keeps no clock of its own.
+    queried; absent: 0 for every entry): the worker keeps no clock of its own. Optional
+    ``"image_segment"`` (:class:`~visfly_dist.protocol.image_segment.SegmentTarget`) asks for the
+    images in a shared-memory file on the learner's host instead of in the reply.
 
     Reply ``{"type": "step_result", "counts": (m,) int32, "images": {camera_name: (total, C, H, W)},
     "collision": (total,) bool, "inside": (total,) bool, "nearest": (total, 3) f32 world point,
     "distance": (total,) f32 (capped at search_radius), "timings": {stage: seconds}}``: rows in
-    request order, so the receiver scatters each array with one index.
+    request order, so the receiver scatters each array with one index. With an image segment the
+    worker could use, ``"images"`` is empty and ``"images_in_segment": true``; with one it could
+    not open or whose nonce differs, the images are inline and ``"segment_refused"`` says why.
     """
 
     scenes: tuple[ScenePoses, ...]
     render: bool = True
     query: bool = True
     search_radius: float = 5.0
+    image_segment: SegmentTarget | None = None
     type: str = field(default="step", init=False)
 
     def to_message(self) -> dict[str, Any]:
@@ -100,20 +106,24 @@ class StepRequest:
             if self.scenes else np.zeros((0, 7), np.float32)
         times = np.array([s.time for s in self.scenes], dtype=np.float64)
         return step_message([s.scene_key for s in self.scenes], counts, poses, self.render, self.query,
-                            self.search_radius, times if np.any(times != 0) else None)
+                            self.search_radius, times if np.any(times != 0) else None, self.image_segment)
 
 
 def step_message(keys: list[str], counts: np.ndarray, poses: np.ndarray, render: bool = True, query: bool = True,
-                 search_radius: float = 5.0, times: np.ndarray | None = None) -> dict[str, Any]:
+                 search_radius: float = 5.0, times: np.ndarray | None = None,
+                 image_segment: SegmentTarget | None = None) -> dict[str, Any]:
     """A step request's wire map built straight from arrays (the aggregator's hot path).
 
     ``times``: ``(len(keys),)`` simulation time of each entry, s; None leaves the field out (t = 0).
+    ``image_segment``: where the worker should put the images (None: in the reply).
     """
     msg = {"type": "step", "keys": keys, "counts": np.asarray(counts, dtype=np.int32),
            "poses": np.ascontiguousarray(poses, dtype=np.float32), "render": bool(render), "query": bool(query),
            "search_radius": float(search_radius)}
     if times is not None:
         msg["times"] = np.ascontiguousarray(times, dtype=np.float64)
+    if image_segment is not None:
+        msg["image_segment"] = image_segment.to_message()
     return msg
 
 
@@ -174,7 +184,7 @@ REQUEST_FIELDS: dict[str, frozenset[str]] = {
     "unload_scene": frozenset({"scene_key"}),
     "load_scene": frozenset({"scene_key", "source", "cameras", "drone_radius", "multi_agent"}),
     "sample_spawn": frozenset({"scene_key", "n", "clearance", "distribution", "a", "b", "seed"}),
-    "step": frozenset({"keys", "counts", "poses", "render", "query", "search_radius", "times"}),
+    "step": frozenset({"keys", "counts", "poses", "render", "query", "search_radius", "times", "image_segment"}),
 }
 """The fields each request type may carry besides ``version`` and ``type``; others are refused."""
 MAX_SEED = 2**63 - 1
@@ -314,4 +324,5 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
     parsed = tuple(ScenePoses(key, poses[end - n:end], t) for key, n, end, t
                    in zip(keys, counts.tolist(), ends.tolist(), times.astype(np.float64).tolist()))
     radius = _finite(_get(msg, "search_radius", (int, float), what), "search_radius", 0.0, 1e4)
-    return StepRequest(parsed, _flag(msg, "render", what), _flag(msg, "query", what), radius)
+    segment = SegmentTarget.parse(msg["image_segment"]) if "image_segment" in msg else None
+    return StepRequest(parsed, _flag(msg, "render", what), _flag(msg, "query", what), radius, segment)

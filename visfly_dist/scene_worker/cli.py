@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="raycast tracing threads (default: the CPUs this process may use, at most 8)")
     parser.add_argument("--worker-id", default=None, help="id in the run (default: <host>-<pid>)")
-    parser.add_argument("--no-shm", action="store_true", help="disable Zenoh shared memory")
+    parser.add_argument("--no-shm", action="store_true",
+                        help="disable shared memory: Zenoh's, and image segments (images travel in the reply)")
     parser.add_argument("--lease-ms", type=int, default=2000,
                         help="link lease: a hung worker is declared dead after about this long")
     parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",

@@ -191,6 +191,26 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
     Returns:
         ``[{camera.name: (n, C, H, W) array}]``, in the order of ``items``.
     """
+    return _render_all(items, [None] * len(items))
+
+
+def render_scenes_into(items: Sequence[tuple], out: dict[str, np.ndarray]) -> None:
+    """:func:`render_scenes` with every item's images written into ``out``, rows in item order.
+
+    ``out``: camera name -> ``(total, C, H, W)`` C-contiguous array (e.g. a view of a shared-memory
+    segment). The native tracer writes depth and segmentation straight into it; other images are
+    copied in once.
+    """
+    ends = np.cumsum([len(item[1]) for item in items]).tolist()
+    outs = [{name: image[end - len(item[1]):end] for name, image in out.items()}
+            for item, end in zip(items, ends)]
+    for result, dest in zip(_render_all(items, outs), outs):
+        for name, image in result.items():
+            if not np.may_share_memory(image, dest[name]):
+                dest[name][...] = image
+
+
+def _render_all(items: Sequence[tuple], outs: Sequence[dict[str, np.ndarray] | None]) -> list[dict[str, np.ndarray]]:
     checked = [(r, r._checked_poses(poses, show), bool(show), checked_time(time[0]) if time else 0.0)
                for r, poses, show, *time in items]
     results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
@@ -200,7 +220,7 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
         native = len(poses) and getattr(r, "tracer", None) == "native"
         if native and (joint_time.setdefault(id(r), time) == time or not r.moving):
             r.place(time)
-            plans.append((k, r, r._plan(poses, show, mounts.get(k))))
+            plans.append((k, r, r._plan(poses, show, mounts.get(k), outs[k])))
         elif native:
             later.append(k)
         else:

@@ -190,10 +190,13 @@ class RaycastRenderer(Renderer):
     # -- native tracer: plan (batches), trace (render_native.trace, maybe with other scenes), finish --
 
     def _plan(self, poses: np.ndarray, show_drones: bool,
-              mounts: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> _Plan:
+              mounts: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+              out: dict[str, np.ndarray] | None = None) -> _Plan:
         """The native batches of validated, non-empty ``poses``: one per camera, outputs allocated.
 
         ``mounts``: each camera's ``camera_world_poses`` of ``poses``, if already computed.
+        ``out``: camera name -> ``(n, 1, H, W)`` C-contiguous array that depth and segmentation
+        cameras are traced into (their images are then views of it); others get their own.
         """
         assert self.tracer == "native"
         n = len(poses)
@@ -204,13 +207,15 @@ class RaycastRenderer(Renderer):
             shape = (n, cam.height, cam.width)
             right, down = self._slopes[cam.name]
             rgb = cam.kind == "rgb"
+            dest = None if out is None or rgb else out[cam.name].reshape(shape)  # a view: out is C-contiguous
             batches.append(render_native.Batch(
                 self._native, right, down, cam.near, cam.far, origins.astype(np.float32),
-                np.ascontiguousarray(rots, dtype=np.float32), np.empty(shape, np.float32),
+                np.ascontiguousarray(rots, dtype=np.float32),
+                dest if dest is not None and cam.kind == "depth" else np.empty(shape, np.float32),
                 prim=np.empty(shape, np.int32) if rgb else None,
                 uv=np.empty((*shape, 2), np.float32) if rgb else None,
                 seg_table=self._object_ids if cam.kind == "segmentation" else None,
-                seg=np.empty(shape, np.uint16) if cam.kind == "segmentation" else None,
+                seg=(dest if dest is not None else np.empty(shape, np.uint16)) if cam.kind == "segmentation" else None,
                 drones=self._native_drones(cam, origins, rots, poses[:, :3]) if drawn else None,
                 drone=np.empty(shape, np.int32) if drawn and rgb else None,
                 light=np.empty(shape, np.float64) if drawn and rgb else None, focal=cam.focal_px))

@@ -35,12 +35,15 @@ import zenoh
 
 from visfly_dist.errors import ConfigError, ErrorCode, ProtocolError, SceneError, VisflyError
 from visfly_dist.protocol import keys
+from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.codec import decode, encode, error_message
+from visfly_dist.protocol.image_segment import SegmentTarget
 from visfly_dist.protocol.messages import (
     Health, LoadScene, Request, SampleSpawn, StepRequest, UnloadScene, parse_request,
 )
 from visfly_dist.protocol.session import SessionConfig, open_session
-from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, render_scenes
+from visfly_dist.scene_worker.image_segments import SegmentMappings
+from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, render_scenes_into
 from visfly_dist.scene_worker.limits import WorkerLimits
 from visfly_dist.scene_worker.queries import query_scenes
 from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
@@ -119,6 +122,7 @@ class SceneWorker:
         self.session_config = session
         self.limits = limits or WorkerLimits()
         self._scenes = SceneTable()
+        self._segments = SegmentMappings()
         self._timer = StageTimer()
         self._last_encode_s = 0.0
         # The inbox holds Zenoh queries (from Zenoh's thread) and finished loads (from the loader).
@@ -225,6 +229,7 @@ class SceneWorker:
             else:
                 self._send(item, False, shutting_down)
         self._scenes.close()
+        self._segments.close()
         if self._session is not None:
             self._session.close()
             self._session = None
@@ -391,11 +396,15 @@ class SceneWorker:
             cameras = loaded[0].cameras
             if any(scene.cameras != cameras for scene in loaded):
                 raise ProtocolError("the scenes of one step request must carry the same cameras")
+            images, target = self._image_buffers(request, cameras, int(counts.sum()), reply)
             with self._timer.time("render", timings):
-                parts = render_scenes([(scene.renderer, item.poses, scene.multi_agent, item.time)
-                                       for item, scene in zip(request.scenes, loaded)])
-                reply["images"] = {c.name: _concat([p[c.name] for p in parts], (0, *c.shape), c.dtype)
-                                   for c in cameras}
+                render_scenes_into([(scene.renderer, item.poses, scene.multi_agent, item.time)
+                                    for item, scene in zip(request.scenes, loaded)], images)
+            if target is not None:
+                self._segments.publish(target)
+                reply["images_in_segment"] = True
+            else:
+                reply["images"] = images
         if request.query:
             with self._timer.time("query", timings):
                 answers = query_scenes([(scene.queries, item.poses[:, :3], item.time)
@@ -404,6 +413,22 @@ class SceneWorker:
                 reply.update(collision=answers.collision, inside=answers.inside, nearest=answers.nearest,
                              distance=answers.distance)
         return reply
+
+    def _image_buffers(self, request: StepRequest, cameras: Sequence[CameraSpec], rows: int,
+                       reply: dict[str, Any]) -> tuple[dict[str, np.ndarray], SegmentTarget | None]:
+        """Where the step's images go: the request's image segment if this worker can use it (and the
+        segment target), else fresh arrays for the reply (and None, with ``segment_refused`` set
+        when a segment was offered)."""
+        target = request.image_segment
+        if target is not None and not self.session_config.shared_memory:
+            reply["segment_refused"] = f"worker {self.worker_id!r} runs without shared memory (--no-shm)"
+        elif target is not None:
+            views, why = self._segments.views(target, cameras, rows)
+            if views is not None:
+                return views, target
+            log.info("replying inline: %s", why)
+            reply["segment_refused"] = why
+        return {c.name: np.empty((rows, *c.shape), c.dtype) for c in cameras}, None
 
     def _check_pixels(self, request: StepRequest, loaded: Sequence[LoadedScene]) -> None:
         pixels = sum(len(item.poses) * scene.pixels_per_agent for item, scene in zip(request.scenes, loaded))
@@ -422,16 +447,9 @@ class SceneWorker:
         return {"type": "spawn", "positions": np.asarray(positions, dtype=np.float32)}
 
     def health(self) -> dict[str, Any]:
-        """The ``health`` reply: identity, loaded and loading scenes, bounds, uptime and cumulative
-        stage timings."""
+        """The ``health`` reply: identity, loaded and loading scenes, bounds, uptime, mapped image
+        segments (name -> bytes) and cumulative stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
                 "backend": self.backend, "tracer": self.tracer, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
                 "limits": self.limits.to_dict(), "uptime_s": time.monotonic() - self._started,
-                "timings": self._timer.summary()}
-
-
-def _concat(parts: list[np.ndarray], empty_shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-    """One array of every entry's rows (no copy for a single entry)."""
-    if len(parts) == 1:
-        return parts[0]
-    return np.concatenate(parts) if parts else np.zeros(empty_shape, dtype=dtype)
+                "image_segments": self._segments.names(), "timings": self._timer.summary()}

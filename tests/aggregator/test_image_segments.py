@@ -1,0 +1,241 @@
+"""Images through a /dev/shm segment: equal to the inline path bit for bit, proven local by a nonce,
+refused with typed errors when malformed, never read when they are another request's, and no file
+left behind (real worker processes, real Zenoh)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.aggregator.conftest import make_aggregator, reference, spawn_poses
+from tests.helpers import call, client_session, wait_for
+from visfly_dist.aggregator import image_shm
+from visfly_dist.aggregator.image_shm import ImageSegments
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.image_segment import HEADER_BYTES, SegmentTarget
+from visfly_dist.protocol.messages import Health, LoadScene, ScenePoses, StepRequest
+
+pytestmark = pytest.mark.worker
+
+RUN = f"seg{os.getpid()}"
+CAMS = (CameraSpec(name="depth", kind="depth", width=32, height=24),
+        CameraSpec(name="seg", kind="segmentation", width=16, height=12),
+        CameraSpec(name="rgb", kind="rgb", width=16, height=12))
+
+
+def _poses(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    poses = np.zeros((n, 7), np.float32)
+    poses[:, :3] = rng.uniform((2.0, -4.0, 1.0), (14.0, 4.0, 3.0), (n, 3))
+    poses[:, 3], poses[:, 6] = np.cos(yaw / 2), np.sin(yaw / 2)
+    return poses
+
+
+def _shm_files(run: str) -> list[str]:
+    return [p for p in os.listdir("/dev/shm") if p.startswith(f"visfly-img-{run}-")]
+
+
+@pytest.fixture(scope="module")
+def served(worker_factory):
+    """A worker holding two scenes, a client session to it, and a learner's segment set."""
+    proc = worker_factory(RUN)
+    with client_session(proc.endpoint) as session:
+        for key, source in (("a", "gen:garage-stones?seed=3"), ("b", "gen:pillars?seed=4")):
+            ok, reply = call(session, proc.rpc_key, LoadScene(key, source, CAMS).to_message(), timeout=60.0)
+            assert ok, reply
+        segments = ImageSegments(RUN, CAMS)
+        yield proc, session, segments
+        segments.close()
+    assert _shm_files(RUN) == []
+
+
+def _step(poses: np.ndarray, target: SegmentTarget | None = None) -> dict:
+    request = StepRequest((ScenePoses("a", poses[:3]), ScenePoses("b", poses[3:])), image_segment=target)
+    return request.to_message()
+
+
+def test_segment_images_equal_inline_images_bit_for_bit(served):
+    proc, session, segments = served
+    poses = _poses(7)
+    ok, inline = call(session, proc.rpc_key, _step(poses))
+    assert ok and "images_in_segment" not in inline and "segment_refused" not in inline
+    for step in range(2):  # the second step finds the file gone and uses the worker's mapping
+        lease = segments.offer(proc.worker_id, 1, len(poses))
+        assert (lease.target.name in os.listdir("/dev/shm")) == (step == 0)
+        ok, reply = call(session, proc.rpc_key, _step(poses, lease.target))
+        assert ok and reply["images_in_segment"] is True and reply["images"] == {}
+        views, problem = segments.images(lease, reply)
+        assert problem == "" and lease.target.name not in os.listdir("/dev/shm")
+        for cam in CAMS:
+            assert views[cam.name].dtype == inline["images"][cam.name].dtype
+            np.testing.assert_array_equal(views[cam.name], inline["images"][cam.name])
+        for key in ("collision", "inside", "nearest", "distance"):
+            np.testing.assert_array_equal(reply[key], inline[key])
+        assert segments.release(lease)
+    ok, health = call(session, proc.rpc_key, Health().to_message())
+    assert health["image_segments"] == {lease.target.name: lease.target.size}
+    assert _shm_files(RUN) == []
+
+
+def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
+    proc, session, segments = served
+    poses = _poses(7, seed=1)
+    ok, inline = call(session, proc.rpc_key, _step(poses))
+    lease = ImageSegments(RUN, CAMS).offer("other", 1, len(poses))  # a real file, another nonce sent
+    for target, why in ((dataclasses.replace(lease.target, nonce=b"x" * 16), "another nonce"),
+                        (dataclasses.replace(lease.target, name=lease.target.name + "-gone"), "cannot open")):
+        ok, reply = call(session, proc.rpc_key, _step(poses, target))
+        assert ok and why in reply["segment_refused"] and "images_in_segment" not in reply
+        for cam in CAMS:
+            np.testing.assert_array_equal(reply["images"][cam.name], inline["images"][cam.name])
+    lease.segment.close()
+    learner = ImageSegments(RUN, CAMS)  # the learner stops offering a segment to that worker
+    refused = learner.offer("w", 1, len(poses))
+    refused.segment.mm[:16] = b"y" * 16  # as if another host's /dev/shm held this name
+    ok, reply = call(session, proc.rpc_key, _step(poses, refused.target))
+    assert learner.images(refused, reply) == (None, "") and learner.release(refused)
+    assert learner.offer("w", 1, len(poses)) is None and learner.files() == []
+    assert learner.offer("w", 2, len(poses)) is not None  # a restarted worker is asked again
+    learner.close()
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(name="../../tmp/visfly-img-x"), "no path separators"),
+    (dict(name="visfly-img-a/b"), "no path separators"),
+    (dict(name="visfly-img-a..b"), "no dots"),
+    (dict(name="visfly-img-" + "a" * 300), "at most 200"),
+    (dict(name="passwd"), "must be 'visfly-img-'"),
+    (dict(nonce=b"short"), "nonce must be 16 bytes"),
+    (dict(seq=0), "seq=0"),
+    (dict(size=10), "size=10"),
+    ("size+64", "request says"),
+    (dict(blocks={"depth": HEADER_BYTES}), "this scene's cameras"),
+    ("overlap", "overlaps the header or another block"),
+    ("past the end", "ends past the segment"),
+])
+def test_malformed_segment_requests_are_refused_and_the_worker_keeps_serving(served, change, match):
+    proc, session, segments = served
+    poses = _poses(7, seed=2)
+    lease = segments.offer(proc.worker_id, 1, len(poses))
+    target = lease.target
+    if change == "size+64":
+        target = dataclasses.replace(target, size=target.size + 64, name=target.name + "-big")
+        Path("/dev/shm", target.name).write_bytes(bytes(target.size - 64))
+    elif change == "overlap":
+        target = dataclasses.replace(target, blocks={**target.blocks, "seg": target.blocks["depth"] + 64})
+    elif change == "past the end":
+        target = dataclasses.replace(target, blocks={**target.blocks, "rgb": target.size - 64})
+    else:
+        message = _step(poses, target)
+        message["image_segment"].update(change)
+    try:
+        ok, err = call(session, proc.rpc_key, message if isinstance(change, dict) else _step(poses, target))
+    finally:
+        if change == "size+64":
+            os.unlink(f"/dev/shm/{target.name}")
+    assert not ok and err["code"] == "bad_request" and match in err["message"], err
+    segments.release(lease, failed=True)
+    ok, health = call(session, proc.rpc_key, Health().to_message())
+    assert ok and health["scenes"] == ["a", "b"]
+    assert not Path("/tmp/visfly-img-x").exists()
+
+
+def test_images_of_another_request_are_never_read(served):
+    proc, session, segments = served
+    poses = _poses(7, seed=3)
+    first = segments.offer(proc.worker_id, 1, len(poses))
+    ok, reply = call(session, proc.rpc_key, _step(poses, first.target))
+    assert segments.images(first, reply)[1] == "" and segments.release(first)
+    later = segments.offer(proc.worker_id, 1, len(poses))
+    assert later.segment is first.segment and later.target.seq > first.target.seq
+    # The first request served again (as a late duplicate would be): its number lands in the header.
+    ok, stale = call(session, proc.rpc_key, _step(poses, first.target))
+    views, problem = segments.images(later, stale)
+    assert views is None and f"request {later.target.seq}" in problem
+    segments.release(later, failed=True)
+    # A failed request's segment is retired: the worker may still write into it, so nobody reads it again.
+    fresh = segments.offer(proc.worker_id, 1, len(poses))
+    assert fresh.segment is not first.segment and fresh.target.name != first.target.name
+    ok, reply = call(session, proc.rpc_key, _step(poses, fresh.target))
+    views, problem = segments.images(fresh, reply)
+    assert problem == "" and views["depth"].shape == (7, 1, 24, 32) and segments.release(fresh)
+
+
+def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_close():
+    agg = make_aggregator(pool={"respawn": True}).start()
+    run = agg.run_id
+    try:
+        poses = spawn_poses(agg)
+        obs = agg.observe(poses)
+        np.testing.assert_allclose(obs.images["depth"], reference(agg, poses)["depth"], atol=1e-4)
+        mapped = {h["worker_id"]: set(h["image_segments"]) for h in agg.health()}
+        assert sorted(mapped) == agg.workers and all(len(names) == 1 for names in mapped.values())
+        assert _shm_files(run) == []  # unlinked once each worker answered
+        victim, pid = next(iter(agg.local_worker_pids().items()))
+        os.kill(pid, signal.SIGKILL)
+        assert _shm_files(run) == []
+        assert wait_for(lambda: victim not in agg.workers, timeout=10.0)
+        assert wait_for(lambda: not agg.observe(poses).lost.any() and len(set(agg.assignment().values())) == 2
+                        and not agg.background_busy(), timeout=60.0, interval=0.2)
+        again = agg.observe(poses)
+        np.testing.assert_array_equal(again.images["depth"], obs.images["depth"])
+        (newcomer,) = set(agg.workers) - set(mapped)
+        (fresh,) = [set(h["image_segments"]) for h in agg.health() if h["worker_id"] == newcomer]
+        assert len(fresh) == 1 and not fresh & mapped[victim]  # the replacement got a fresh segment
+        assert _shm_files(run) == []
+    finally:
+        agg.close()
+    assert _shm_files(run) == []
+
+
+def test_workers_that_see_another_dev_shm_step_inline(tmp_path, monkeypatch):
+    monkeypatch.setattr(image_shm, "SHM_DIR", str(tmp_path))  # the learner's "/dev/shm" is not the workers'
+    with make_aggregator(pool={"num_local_workers": 1}, scenes={"num_scenes": 2}) as agg:
+        poses = spawn_poses(agg)
+        for _ in range(2):
+            obs = agg.observe(poses)
+            np.testing.assert_allclose(obs.images["depth"], reference(agg, poses)["depth"], atol=1e-4)
+            assert not obs.lost.any() and list(tmp_path.iterdir()) == []
+        (health,) = agg.health()
+        assert health["image_segments"] == {}
+
+
+def test_no_room_for_a_segment_means_inline_images(monkeypatch, tmp_path):
+    monkeypatch.setattr(image_shm, "SHM_DIR", str(tmp_path / "missing"))
+    segments = ImageSegments(RUN, CAMS)
+    assert segments.offer("w", 1, 4) is None and segments.offer("w", 1, 4) is None
+    assert segments.files() == []
+
+
+def test_a_segment_grows_by_a_new_file_and_keeps_room_for_varying_rows():
+    segments = ImageSegments(RUN, CAMS)
+    first = segments.offer("w", 1, 9)
+    assert segments.release(first)
+    again = segments.offer("w", 1, 16)  # room for 16 rows was made for 9
+    assert again.segment is first.segment and segments.release(again)
+    bigger = segments.offer("w", 1, 17)
+    assert bigger.segment is not first.segment and bigger.target.name != first.target.name
+    assert segments.files() == [f"/dev/shm/{bigger.target.name}"]  # the small one was unlinked
+    segments.close()
+    assert _shm_files(RUN) == []
+
+
+def test_a_worker_without_shared_memory_refuses_segments(worker_factory):
+    proc = worker_factory(RUN, shm=False)
+    segments = ImageSegments(RUN, CAMS)
+    with client_session(proc.endpoint, shm=False) as session:
+        assert call(session, proc.rpc_key, LoadScene("a", "gen:pillars?seed=4", CAMS).to_message(), timeout=60.0)[0]
+        lease = segments.offer(proc.worker_id, 1, 2)
+        poses = _poses(2)
+        ok, reply = call(session, proc.rpc_key, StepRequest((ScenePoses("a", poses),), image_segment=lease.target)
+                         .to_message())
+        assert ok and "--no-shm" in reply["segment_refused"] and reply["images"]["depth"].shape == (2, 1, 24, 32)
+        assert segments.images(lease, reply) == (None, "") and segments.release(lease)
+        assert segments.offer(proc.worker_id, 1, 2) is None
+    segments.close()
