@@ -123,7 +123,8 @@ def _mutations(rng: np.random.Generator) -> list[Callable[[dict[str, Any]], Any]
         return {**m, f"extra_{rng.integers(100)}": [None, 1, "x", True][rng.integers(4)]}
 
     def version(m):
-        return {**m, "version": [True, 1.0, 2, 0, "1", None, -1, 2**64 - 1][rng.integers(8)]}
+        return {**m, "version": [True, float(PROTOCOL_VERSION), PROTOCOL_VERSION + 1, PROTOCOL_VERSION - 1, 0,
+                                 str(PROTOCOL_VERSION), None, -1, 2**64 - 1][rng.integers(9)]}
 
     def truncated(m):
         body = encode({k: v for k, v in m.items() if k != "version"})
