@@ -187,7 +187,8 @@ def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_clo
         np.testing.assert_array_equal(again.images["depth"], obs.images["depth"])
         (newcomer,) = set(agg.workers) - set(mapped)
         (fresh,) = [set(h["image_segments"]) for h in agg.health() if h["worker_id"] == newcomer]
-        assert len(fresh) == 1 and not fresh & mapped[victim]  # the replacement got a fresh segment
+        # the replacement got segments of its own (more than one when requests overlapped under load)
+        assert fresh and not fresh & mapped[victim]
         assert _shm_files(run) == []
     finally:
         agg.close()
