@@ -39,7 +39,6 @@ from visfly_dist.errors import NoWorkersError, ProtocolError, RemoteError
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
 from visfly_dist.protocol.session import SessionConfig, open_session
-from visfly_dist.protocol.shm import release_segments
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +161,12 @@ class WorkerPool:
             raise
 
     def close(self) -> None:
-        """Stop local workers, undeclare, close the session. Idempotent."""
+        """Stop local workers, undeclare, close the session. Idempotent.
+
+        This process's Zenoh shared-memory files stay until it exits (:mod:`visfly_dist.protocol.shm`
+        releases them then): Zenoh keeps some of them per process and reuses them in the next
+        session, e.g. the next env of a sweep, whose workers could not map them once unlinked.
+        """
         local, self._local = list(self._local.values()), {}
         stop_workers(local, STOP_GRACE_S)
         if self._subscriber is not None:
@@ -171,7 +175,6 @@ class WorkerPool:
         if self._session is not None:
             self._session.close()
             self._session = None
-            release_segments()  # our shared-memory segment files, once no session of ours is open
         if self._log_dir is not None:
             shutil.rmtree(self._log_dir, ignore_errors=True)
             self._log_dir = None

@@ -8,10 +8,18 @@ process holds, so a process that closed its sessions leaves nothing behind even 
 Zenoh process ever runs on the host again.
 
 Both sides use it: :func:`~visfly_dist.protocol.session.open_session` registers every session
-with :func:`track`, and :func:`release_segments` (called by ``close()`` of whatever owned the last
-session, and at interpreter exit) unlinks this process's files once every tracked session is closed.
-Unlinking while a session of this process is still open would hide its pool from peers that have
-not mapped it yet, hence the tracking.
+with :func:`track`, and :func:`release_segments` (at interpreter exit, and by the worker command as
+it stops) unlinks this process's files once every tracked session is closed. Unlinking while a
+session of this process is still open would hide its pool from peers that have not mapped it yet,
+hence the tracking.
+
+Never call it while the process may still open a session: Zenoh keeps the buffer-header and
+watchdog segments per process (global to it, not per session) and reuses them in every later
+session. Once unlinked, a peer that first maps them afterwards (the worker of the next env made in
+the same process) cannot resolve any shared-memory buffer this process sends; Zenoh drops such a
+request silently and the sender gets ``Timeout``. Measured with 1.10.2 (the regression test
+``tests/aggregator/test_sequential_pools.py``): the second of two pools made one after another got
+no answer to its 5.6 kB step requests after the first pool's ``close()`` had released the files.
 """
 
 from __future__ import annotations
@@ -46,9 +54,10 @@ def open_sessions() -> int:
 def release_segments() -> list[str]:
     """Unlink this process's Zenoh shared-memory files if every tracked session is closed.
 
-    Call it after closing a session (``Aggregator.close()``, the worker command's exit); it does
-    nothing while another session of this process is open, and it runs again at interpreter exit.
-    Mappings stay valid after an unlink, so nothing already mapped is disturbed.
+    Call it only when this process opens no further session (it runs at interpreter exit; the
+    worker command calls it as it stops): later sessions reuse Zenoh's per-process segments, which
+    new peers could no longer map (see the module docstring). It does nothing while a session of
+    this process is open. Mappings stay valid after an unlink, so nothing already mapped is disturbed.
 
     Returns:
         The removed paths (empty while a session is open).
