@@ -102,7 +102,8 @@ def expand_sources(sources: tuple[str, ...], roots: tuple[str, ...]) -> list[str
         elif any(os.path.exists(os.path.join(root, source)) for root in roots):
             out.append(os.path.normpath(source) + options)
         else:
-            problems.append(f"scene path {source!r} not found under {roots_hint}; give a path relative to a root, or a 'gen:KIND' spec")
+            where = f"under {roots_hint}" if roots else f"({roots_hint})"
+            problems.append(f"scene path {source!r} not found {where}; give a path relative to a root, or a 'gen:KIND' spec")
     if problems:
         raise ConfigError("invalid scene sources: " + "; ".join(problems))
     return out
