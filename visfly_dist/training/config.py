@@ -94,12 +94,10 @@ class TrainConfig:
         device: torch device of the policy.
         threads: torch CPU threads of the training process while it steps the env (the scene
             workers use the other cores).
-        update_threads: torch CPU threads during a PPO update, when the local workers sit idle
-            (plain PPO only); ``None``: every CPU this process may use or one thread, whichever
-            the run's updates were timed faster with (re-timed after 8 updates, then less and less often). Measured on 2
-            cores: every CPU made the update 1.75x faster (8.0 s against 14.0 s per 8,192 steps)
-            on an otherwise quiet machine, but 3-10x slower under heavy outside load (OpenMP
-            threads waiting for a core).
+        update_threads: threads of a PPO update, when the local workers sit idle (plain PPO on
+            CPU only): each minibatch is split across them, one torch thread each; ``None``: every
+            CPU this process may use or one thread, whichever the run's updates were timed faster
+            with (re-timed after 8 updates, then less and less often).
         n_steps: rollout length per env between updates.
         batch_size: PPO minibatch size.
         lr: Adam learning rate (``None``: 3e-4, or the task's for ``bptt``/``shac``).

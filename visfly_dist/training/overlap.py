@@ -45,6 +45,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 
+from visfly_dist.training.parallel_update import sharded_ppo_train
 from visfly_dist.training.threads import UpdateThreadChooser
 
 IMPORTANCE_CLIP = 2.0
@@ -54,14 +55,16 @@ PROXIMAL_CHUNK = 512
 
 
 class UpdateThreadsPPO(PPO):
-    """Plain SB3 PPO that may give its update more torch threads (the scene workers are idle then),
-    and reports its phase times.
+    """Plain SB3 PPO whose update may use more threads (the scene workers are idle then), and
+    reports its phase times.
 
-    During rollouts torch stays at the thread count it was given (one, so it does not fight the
-    local workers for the cores); :meth:`train` runs with ``update_threads`` threads, or, when it is
-    ``None``, with every CPU this process may use or one thread, whichever the updates so far ran
-    faster with (:class:`~visfly_dist.training.threads.UpdateThreadChooser`; logged as
-    ``train/update_threads``).
+    :meth:`train` splits each minibatch across ``update_threads`` threads, each running its part's
+    forward and backward pass on one torch thread (:func:`~visfly_dist.training.parallel_update.sharded_ppo_train`:
+    the same update as SB3's, with one meeting point per minibatch instead of one per operator).
+    With ``update_threads=None`` it uses every CPU this process may use or one thread, whichever the
+    updates so far ran faster with (:class:`~visfly_dist.training.threads.UpdateThreadChooser`;
+    logged as ``train/update_threads``). During rollouts torch stays at the thread count it was
+    given (one, so it does not fight the local workers for the cores).
     """
 
     def __init__(self, *args: Any, update_threads: int | None = None, **kwargs: Any) -> None:
@@ -84,11 +87,12 @@ class UpdateThreadsPPO(PPO):
     def train(self) -> None:
         rollout_threads = torch.get_num_threads()
         threads = self.thread_chooser.next()
-        torch.set_num_threads(threads)
+        on_cpu = self.device.type == "cpu"
+        torch.set_num_threads(1 if on_cpu else rollout_threads)
         self.logger.record("train/update_threads", threads)
         t0 = time.perf_counter()
         try:
-            super().train()
+            sharded_ppo_train(self, threads if on_cpu else 1)
         finally:
             torch.set_num_threads(rollout_threads)
             seconds = time.perf_counter() - t0

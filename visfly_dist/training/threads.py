@@ -1,9 +1,10 @@
-"""The torch thread count of PPO updates, chosen by timing the updates themselves.
+"""The thread count of PPO updates, chosen by timing the updates themselves.
 
 During an update the local scene workers sit idle, so the update may use every CPU. On a machine
-that other work keeps busy, it should not: OpenMP's threads wait at every barrier for a core, and
-a CNN update on 2 threads was measured 3-10x slower than on one (8 s quiet, 77 s at a load average
-of 6 on 2 cores, per 8,192 samples). The load is not known in advance and changes during a run,
+that other work keeps busy, more threads may not pay: a thread waits for the slowest at each
+meeting point (once per minibatch, see :mod:`visfly_dist.training.parallel_update`; with OpenMP's
+threads, after every operator, where 2 threads were measured 3-10x slower than one at a load
+average of 6 on 2 cores). The load is not known in advance and changes during a run,
 so :class:`UpdateThreadChooser` measures: it runs an update with each candidate, keeps the fastest,
 and tries the others again now and then: after 8 updates, then twice as long each time a retiming
 confirms the choice (up to 64), and after 8 again when the choice changes. On a quiet machine the

@@ -47,8 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads of the trainer (default 1)")
     parser.add_argument("--update-threads", type=int, default=None, metavar="N",
-                        help="torch CPU threads during PPO updates, when the workers are idle (default: every CPU "
-                             "or 1, whichever the updates are timed faster with)")
+                        help="threads of each PPO update, when the workers are idle; each minibatch is split "
+                             "across them (default: every CPU or 1, whichever the updates are timed faster with)")
     parser.add_argument("--n-steps", type=int, help="rollout steps per env between updates")
     parser.add_argument("--batch-size", type=int, help="PPO minibatch size")
     parser.add_argument("--n-epochs", type=int, default=5, help="passes over each rollout (default 5)")
