@@ -11,8 +11,10 @@ import pytest
 from visfly_dist.bench.update import bench_update
 
 
-def test_update_row_counts_the_task_defaults():
-    row = bench_update("hover", threads=1, reps=1)
+@pytest.mark.parametrize("mode", ["sharded", "openmp"])
+def test_update_row_counts_the_task_defaults(mode):
+    row = bench_update("hover", threads=2 if mode == "sharded" else 1, reps=1, mode=mode)
+    assert row["mode"] == mode
     assert row["samples"] == 16 * 128 and row["epochs"] == 5 and row["batch_size"] == 512
     assert row["update_cpu_s"] > 0 and row["update_wall_s"] > 0
     assert row["ms_per_sample_pass"] == pytest.approx(row["update_cpu_s"] / (2048 * 5) * 1e3, rel=0.01)
@@ -26,6 +28,6 @@ def test_bad_arguments_fail_with_one_line():
 
 def test_child_mode_prints_json_rows(tmp_path):
     done = subprocess.run([sys.executable, "-m", "visfly_dist.cli", "bench", "update", "--task", "hover", "--reps", "1",
-                           "--child"], capture_output=True, text=True, timeout=300, check=True)
+                           "--modes", "openmp", "--child"], capture_output=True, text=True, timeout=300, check=True)
     rows = json.loads(done.stdout.strip().splitlines()[-1])
-    assert rows[0]["task"] == "hover" and rows[0]["threads"] == 1
+    assert [(r["task"], r["mode"], r["threads"]) for r in rows] == [("hover", "openmp", 1)]

@@ -8,6 +8,11 @@ and wall seconds per update, and the extractor's CPU milliseconds per sample (fo
 backward, all epochs). Nothing is stepped: the scene workers start once, only to read the
 observation space.
 
+Each thread count runs two ways (``--modes``): ``sharded``, the update ``visfly-dist train`` runs
+(each minibatch split across the threads, one torch thread each;
+:mod:`visfly_dist.training.parallel_update`), and ``openmp``, SB3's own ``PPO.train`` with that many
+torch threads.
+
 With ``--compare-kernels`` the same measurement runs again in a child process with the native
 training kernels off (``VISFLY_NATIVE_KERNELS=0``), and the ratio is reported.
 """
@@ -38,11 +43,15 @@ def observation_space(task: str) -> Any:
         env.close()
 
 
-def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed: int = 0) -> dict[str, Any]:
-    """Time ``reps`` PPO updates of ``task``'s default configuration on ``threads`` torch threads.
+MODES = ("sharded", "openmp")
+
+
+def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed: int = 0,
+                 mode: str = "sharded") -> dict[str, Any]:
+    """Time ``reps`` PPO updates of ``task``'s default configuration on ``threads`` threads.
 
     Returns:
-        ``task, threads, samples, epochs, batch_size, kernels, update_cpu_s, update_wall_s,
+        ``task, mode, threads, samples, epochs, batch_size, kernels, update_cpu_s, update_wall_s,
         ms_per_sample_pass`` (CPU ms per sample per epoch; medians over ``reps``).
     """
     import torch
@@ -53,6 +62,7 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
     from visfly_dist.training.extractors import visfly_policy_kwargs
     from visfly_dist.training.memory import keep_freed_memory
     from visfly_dist.training.native_kernels import load_kernels
+    from visfly_dist.training.parallel_update import sharded_ppo_train
 
     keep_freed_memory()
     cfg = TrainConfig(task=task, algo="ppo").resolved()
@@ -76,20 +86,27 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
                 np.zeros(cfg.num_envs, dtype=bool), values, log_probs)
     buf.compute_returns_and_advantage(last_values=torch.zeros(cfg.num_envs), dones=np.zeros(cfg.num_envs, dtype=bool))
     previous = torch.get_num_threads()
-    torch.set_num_threads(threads)
+    torch.set_num_threads(threads if mode == "openmp" else 1)
+
+    def update() -> None:
+        if mode == "openmp":
+            model.train()
+        else:
+            sharded_ppo_train(model, threads)
+
     cpu, wall = [], []
     try:
-        model.train()  # warm-up: allocations, the first channels-last switch
+        update()  # warm-up: allocations, the first channels-last switch
         for _ in range(reps):
             c, w = time.process_time(), time.perf_counter()
-            model.train()
+            update()
             cpu.append(time.process_time() - c)
             wall.append(time.perf_counter() - w)
     finally:
         torch.set_num_threads(previous)
     samples = cfg.n_steps * cfg.num_envs
     update_cpu = float(np.median(cpu))
-    return {"task": task, "threads": threads, "samples": samples, "epochs": cfg.n_epochs, "batch_size": cfg.batch_size,
+    return {"task": task, "mode": mode, "threads": threads, "samples": samples, "epochs": cfg.n_epochs, "batch_size": cfg.batch_size,
             "kernels": "native" if load_kernels()[0] is not None else "torch",
             "update_cpu_s": round(update_cpu, 3), "update_wall_s": round(float(np.median(wall)), 3),
             "ms_per_sample_pass": round(update_cpu / (samples * cfg.n_epochs) * 1e3, 4)}
@@ -112,6 +129,9 @@ def _null_logger() -> Any:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--task", default="navigation", help="task whose default PPO update to time (default: navigation)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1], help="torch threads to try (default 1)")
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES),
+                        help="sharded: the update visfly-dist train runs; openmp: SB3's PPO.train on torch threads "
+                             "(default: both)")
     parser.add_argument("--reps", type=int, default=3, help="timed updates per row (median; default 3)")
     parser.add_argument("--compare-kernels", action="store_true",
                         help="also run with the native training kernels off, in a child process")
@@ -125,13 +145,13 @@ def run(args: argparse.Namespace) -> int:
 
     if any(t < 1 for t in args.threads) or args.reps < 1:
         raise ConfigError(f"--threads {args.threads} and --reps {args.reps} must be >= 1")
-    rows = [bench_update(args.task, t, args.reps) for t in args.threads]
+    rows = [bench_update(args.task, t, args.reps, mode=m) for m in args.modes for t in args.threads]
     if args.child:
         print(json.dumps(rows))
         return 0
     if args.compare_kernels:
         command = [sys.executable, "-m", "visfly_dist.cli", "bench", "update", "--task", args.task, "--reps", str(args.reps),
-                   "--child", "--threads", *map(str, args.threads)]
+                   "--child", "--modes", *args.modes, "--threads", *map(str, args.threads)]
         child = subprocess.run(command, env={**os.environ, "VISFLY_NATIVE_KERNELS": "0"}, capture_output=True, text=True,
                                check=True)
         rows += json.loads(child.stdout.strip().splitlines()[-1])
