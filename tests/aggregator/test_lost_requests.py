@@ -10,7 +10,9 @@ import sys
 import pytest
 
 from tests.helpers import REPO
+from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.lost_requests import LostRequests, Verdict
+from visfly_dist.errors import ConfigError
 
 # The real cause, as a learner hit it (session 5): this process's Zenoh shared-memory files are
 # removed while it still opens sessions (then by a bug in close(); a /dev/shm cleanup or
@@ -105,3 +107,9 @@ def test_a_worker_that_answers_again_starts_over():
     lost.forget("a")
     lost.answered("b", 9000)
     assert lost.lost_but_alive("a", 6000) is Verdict.KEEP
+
+
+@pytest.mark.parametrize("limit", [0, -1, 2.5, True, "3"])
+def test_lost_request_limit_must_be_a_positive_int(limit):
+    with pytest.raises(ConfigError, match=f"lost_request_limit={limit!r} must be an int >= 1"):
+        PoolConfig(lost_request_limit=limit).validate()
