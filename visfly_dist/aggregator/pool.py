@@ -304,12 +304,12 @@ class WorkerPool:
         (not yet live), or ``None``.
 
         ``unanswered_bytes`` (:attr:`Reply.unanswered_bytes`): the failure was a request of that
-        size without an answer. A local worker is then probed first, and kept (not banned, not
-        killed; ``None`` is returned) if it answers, unless :class:`.LostRequests` says it is at
-        fault. Raises LostRequestsError when lost-but-alive requests reach
+        size without an answer. A local worker is then probed first (even without ``replace``: a
+        worker that answers shows that the network is up), and kept (not banned, not killed;
+        ``None`` is returned) if it answers, unless :class:`.LostRequests` says it is at fault. Raises LostRequestsError when lost-but-alive requests reach
         ``PoolConfig.lost_request_limit`` in a row with none of their size answered in between.
         """
-        if replace and unanswered_bytes and worker_id in self._local and self.probe(worker_id):
+        if unanswered_bytes and worker_id in self._local and self.probe(worker_id):  # reachable: no outage
             verdict = self._lost.lost_but_alive(worker_id, unanswered_bytes)
             if verdict is Verdict.FAIL:
                 raise LostRequestsError(self.run_id, worker_id, unanswered_bytes, self._lost.count,
