@@ -62,6 +62,31 @@ class TransportTimeoutError(VisflyError):
     """A worker did not answer within its deadline."""
 
 
+class LostRequestsError(TransportTimeoutError):
+    """Workers are alive (they answer health probes) but the run's requests of some size never reach them.
+
+    Replacing workers cannot help then: the fault is on the sender's side, most likely this
+    process's Zenoh shared memory. Raised after ``PoolConfig.lost_request_limit`` such requests in
+    a row, instead of replacing worker after worker.
+
+    Attributes:
+        worker_id: the worker of the last lost request.
+        request_bytes: that request's size.
+    """
+
+    def __init__(self, run_id: str, worker_id: str, request_bytes: int, count: int, timeout_s: float,
+                 cause: str) -> None:
+        super().__init__(
+            f"run {run_id!r}: local worker {worker_id!r} is alive (it answers health probes), but {count} request(s) "
+            f"in a row of {request_bytes} bytes or more got no answer within step_timeout_s={timeout_s:g} "
+            f"(last: {cause}): large requests do not arrive. Replacing workers would not help: the fault is on "
+            "this side, most likely this process's Zenoh shared memory (its /dev/shm/*.zenoh files removed while "
+            "it runs, e.g. by a /dev/shm cleanup or systemd-logind's RemoveIPC). Restart the run, or set "
+            "PoolConfig.shared_memory=False; if the workers are only slower than step_timeout_s, raise it")
+        self.worker_id = worker_id
+        self.request_bytes = request_bytes
+
+
 class WorkerDiedError(VisflyError):
     """A worker process went away (its liveliness token vanished or it stopped answering)."""
 

@@ -465,7 +465,7 @@ class Aggregator:
         else:
             reason = reply.failure or "failed"
             others = [w for w in self._pool.live_workers() if w != reply.worker_id]
-            self._pool.drop(reply.worker_id, reason, replace=bool(others))
+            self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
             if self._images is not None:
                 self._images.drop_worker(reply.worker_id)
         self._orphan(reply.worker_id, reason)

@@ -63,6 +63,11 @@ class PoolConfig:
         lease_ms: Zenoh link lease of local workers: a hung worker is declared dead after this.
         outage_limit_s: how long a run waits when no worker at all is reachable (the router or the
             network is down) before it fails with NoWorkersError.
+        lost_request_limit: a local worker whose request got no answer but which answers a health
+            probe is alive and is not killed; after this many such requests in a row, with none of
+            their size answered by any worker in between, the run fails with LostRequestsError
+            (the learner's side is broken: every replacement would time out the same way). A
+            worker that alone reaches it while others answer is replaced.
         zenoh_config: a Zenoh JSON5 config file (TLS, user/password; see ``deploy/zenoh``) for the
             aggregator's session and its local workers; ``None`` uses ``$ZENOH_CONFIG`` when set.
             visfly-dist's own settings (mode, endpoints, shared memory, lease) override the file.
@@ -81,6 +86,7 @@ class PoolConfig:
     min_workers: int = 1
     lease_ms: int = 2000
     outage_limit_s: float = 120.0
+    lost_request_limit: int = 3
     zenoh_config: str | None = None
 
     def __post_init__(self) -> None:
@@ -115,6 +121,9 @@ class PoolConfig:
                 out.append(f"scene root {root!r} is not a directory")
         if not isinstance(self.min_workers, int) or self.min_workers < 1:
             out.append(f"min_workers={self.min_workers!r} must be an int >= 1")
+        if not isinstance(self.lost_request_limit, int) or isinstance(self.lost_request_limit, bool) \
+                or self.lost_request_limit < 1:
+            out.append(f"lost_request_limit={self.lost_request_limit!r} must be an int >= 1")
         if not isinstance(self.lease_ms, int) or not 200 <= self.lease_ms <= 600_000:
             out.append(f"lease_ms={self.lease_ms!r} must be an int in [200, 600000]")
         out += self._zenoh_config_problems()

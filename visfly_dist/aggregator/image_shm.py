@@ -11,7 +11,9 @@ Invariants:
 - A file exists only from its creation until the worker's first answer to a request naming it:
   then it is unlinked, and both sides keep their mappings. Nothing is left in ``/dev/shm`` even if
   either process is SIGKILLed later. Retired segments, dropped workers and :meth:`close` unlink
-  too.
+  too. Only a learner killed while a request is unanswered leaves files behind: a new
+  :class:`ImageSegments` removes every ``visfly-img-*`` file of this user that no live process
+  holds open or maps (:func:`remove_orphaned_segments`), so another live learner's files stay.
 - A segment is busy from the request that names it until the reply was read (:meth:`release`). A
   request that failed (no reply, timeout) retires its segment: the worker may still write into
   it late, so it is never handed to another request.
@@ -28,6 +30,7 @@ import logging
 import mmap
 import os
 import secrets
+import stat
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -37,11 +40,47 @@ from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
     NAME_PREFIX, NONCE_BYTES, SEQ, SEQ_OFFSET, SHM_DIR, SegmentTarget, block_view, layout,
 )
+from visfly_dist.protocol.shm import files_in_use
 
 log = logging.getLogger(__name__)
 
 MAX_PER_WORKER = 4
 NAME_PART_CHARS = 48
+
+
+def remove_orphaned_segments() -> list[str]:
+    """Unlink the image segment files in :data:`SHM_DIR` that are this user's and nobody's any more.
+
+    A file is an orphan when no live process holds it open or maps it (``/proc/*/fd`` and
+    ``/proc/*/maps``): its learner was killed before the worker answered. A live learner maps
+    each of its files from creation to unlink, so its files are never removed.
+
+    Returns:
+        The removed paths.
+    """
+    try:
+        names = [n for n in os.listdir(SHM_DIR) if n.startswith(NAME_PREFIX)]
+    except OSError:  # no /dev/shm: images travel inline anyway
+        return []
+    mine = []
+    for name in names:
+        path = os.path.join(SHM_DIR, name)
+        try:
+            st = os.lstat(path)
+        except FileNotFoundError:
+            continue
+        if st.st_uid == os.getuid() and stat.S_ISREG(st.st_mode):
+            mine.append(path)
+    removed = []
+    for path in sorted(set(mine) - files_in_use(mine)):
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            continue
+        removed.append(path)
+    if removed:
+        log.info("removed %d image segment file(s) left in %s by a learner that was killed", len(removed), SHM_DIR)
+    return removed
 
 
 def _name_part(value: str) -> str:
@@ -93,7 +132,7 @@ class Lease:
 
 
 class ImageSegments:
-    """Every image segment of one learner (one run).
+    """Every image segment of one learner (one run). Creating one removes orphaned segment files.
 
     Args:
         run_id: the run (part of every file name).
@@ -106,6 +145,7 @@ class ImageSegments:
         self._segments: dict[str, list[Segment]] = {}
         self._refused: set[tuple[str, int]] = set()
         self._seq = 0
+        remove_orphaned_segments()
 
     def offer(self, worker_id: str, generation: int, rows: int) -> Lease | None:
         """A segment for a request of ``rows`` image rows to this worker, or None (send images inline)."""

@@ -17,6 +17,10 @@ Invariants (Zenoh 1.x behaviour, see docs/ARCHITECTURE.md):
   the worker reporting a problem with the request.
 - Local workers are spawned with subprocess (fork + exec, safe after the session opened) and are
   stopped on close, SIGTERM first, then SIGKILL after a grace period; the session is closed too.
+- A local worker whose request got no answer is probed with a health request (small, so never in
+  shared memory; :data:`PROBE_TIMEOUT_S`) before it is killed. One that answers is alive and kept;
+  :mod:`.lost_requests` decides when such cases mean the learner's side is broken (the run fails
+  with :class:`LostRequestsError` instead of replacing worker after worker) or that worker is.
 """
 
 from __future__ import annotations
@@ -35,9 +39,11 @@ import zenoh
 
 from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
-from visfly_dist.errors import NoWorkersError, ProtocolError, RemoteError
+from visfly_dist.aggregator.lost_requests import LostRequests, Verdict
+from visfly_dist.errors import LostRequestsError, NoWorkersError, ProtocolError, RemoteError
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
+from visfly_dist.protocol.messages import Health
 from visfly_dist.protocol.session import SessionConfig, open_session
 
 log = logging.getLogger(__name__)
@@ -45,6 +51,7 @@ log = logging.getLogger(__name__)
 STOP_GRACE_S = 5.0
 POLL_S = 0.02
 LIVELINESS_QUEUE = 4096
+PROBE_TIMEOUT_S = 1.0  # a health reply takes milliseconds; a hung worker costs this much more before it is replaced
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -62,12 +69,17 @@ def _loopback(endpoint: str) -> str:
 
 @dataclass
 class Reply:
-    """The outcome of one request to one worker: exactly one of message, error, failure is set."""
+    """The outcome of one request to one worker: exactly one of message, error, failure is set.
+
+    ``unanswered_bytes``: the size of the request when it got no answer at all (zero replies or
+    ``Timeout``), else 0.
+    """
 
     worker_id: str
     message: dict[str, Any] | None = None
     error: RemoteError | None = None
     failure: str | None = None
+    unanswered_bytes: int = 0
 
 
 class Pending:
@@ -77,9 +89,11 @@ class Pending:
     finished: replied, dropped by the worker, or timed out; the pool's condition is notified then.
     """
 
-    def __init__(self, worker_id: str, timeout_s: float, condition: threading.Condition) -> None:
+    def __init__(self, worker_id: str, timeout_s: float, condition: threading.Condition,
+                 request_bytes: int = 0) -> None:
         self.worker_id = worker_id
         self.timeout_s = timeout_s
+        self.request_bytes = request_bytes
         self.sent_at = time.perf_counter()
         self.raw: tuple[bool, bytes] | None = None
         self._done = threading.Event()
@@ -126,6 +140,7 @@ class WorkerPool:
         self._launch: WorkerLaunchSpec | None = None
         self._replies = threading.Condition()
         self._user: str | None = None
+        self._lost = LostRequests(config.lost_request_limit)
 
     # ----- lifecycle -------------------------------------------------------------------------
 
@@ -275,14 +290,37 @@ class WorkerPool:
                 lines.append(f"{wid} exited with {w.process.returncode}: {w.log_tail(800)!r}")
         return "; ".join(lines)
 
-    def drop(self, worker_id: str, reason: str, replace: bool = True) -> str | None:
+    def probe(self, worker_id: str, timeout_s: float = PROBE_TIMEOUT_S) -> bool:
+        """Whether the worker answers a health request (a few bytes) within ``timeout_s``."""
+        (reply,) = self.call([(worker_id, Health().to_message())], timeout_s)
+        return reply.message is not None
+
+    def drop(self, worker_id: str, reason: str, replace: bool = True, unanswered_bytes: int = 0) -> str | None:
         """Stop using a failing worker until its token reappears.
 
         A local one is killed and replaced (when ``respawn`` is on) only with ``replace``: the
         caller passes ``False`` when no other worker is reachable either, since then the network
         or the router is down and the worker itself is probably fine. Returns the replacement's id
         (not yet live), or ``None``.
+
+        ``unanswered_bytes`` (:attr:`Reply.unanswered_bytes`): the failure was a request of that
+        size without an answer. A local worker is then probed first (even without ``replace``: a
+        worker that answers shows that the network is up), and kept (not banned, not killed;
+        ``None`` is returned) if it answers, unless :class:`.LostRequests` says it is at fault. Raises LostRequestsError when lost-but-alive requests reach
+        ``PoolConfig.lost_request_limit`` in a row with none of their size answered in between.
         """
+        if unanswered_bytes and worker_id in self._local and self.probe(worker_id):  # reachable: no outage
+            verdict = self._lost.lost_but_alive(worker_id, unanswered_bytes)
+            if verdict is Verdict.FAIL:
+                raise LostRequestsError(self.run_id, worker_id, unanswered_bytes, self._lost.count,
+                                        self.config.step_timeout_s, reason)
+            if verdict is Verdict.KEEP:
+                log.warning("run %s: worker %s answers a health probe but not a request of %d bytes (%s); "
+                            "not killing it (%d such case(s) in a row)", self.run_id, worker_id, unanswered_bytes,
+                            reason, self._lost.count)
+                return None
+            reason += f"; it answers health probes but not requests of {unanswered_bytes} bytes, which others answer"
+        self._lost.forget(worker_id)
         log.warning("run %s: dropping worker %s: %s", self.run_id, worker_id, reason)
         self._poll_liveliness()
         if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
@@ -324,8 +362,9 @@ class WorkerPool:
         assert self._session is not None, "pool is not open"
         out = []
         for wid, message in requests:
-            pending = Pending(wid, timeout_s, self._replies)
-            self._session.get(keys.worker_rpc(self.run_id, wid), payload=encode(message), timeout=timeout_s,
+            payload = encode(message)
+            pending = Pending(wid, timeout_s, self._replies, len(payload))
+            self._session.get(keys.worker_rpc(self.run_id, wid), payload=payload, timeout=timeout_s,
                               consolidation=zenoh.ConsolidationMode.NONE,
                               handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done, indirect=False))
             out.append(pending)
@@ -364,7 +403,12 @@ class WorkerPool:
 
     def result(self, pending: Pending) -> Reply:
         """The outcome of a finished request (a request not done yet counts as timed out)."""
-        return self._interpret(pending.worker_id, pending.raw if pending.done() else None, pending.timeout_s)
+        reply = self._interpret(pending.worker_id, pending.raw if pending.done() else None, pending.timeout_s)
+        if reply.failure is None:
+            self._lost.answered(pending.worker_id, pending.request_bytes)
+        else:
+            reply.unanswered_bytes = pending.request_bytes
+        return reply
 
     def call(self, requests: Sequence[tuple[str, dict[str, Any]]], timeout_s: float,
              timings: BatchTimings | None = None) -> list[Reply]:
