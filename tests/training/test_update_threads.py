@@ -17,13 +17,20 @@ def run(chooser: UpdateThreadChooser, seconds_of: dict[int, float], updates: int
     return used
 
 
-def test_times_each_candidate_then_keeps_the_faster_and_retimes_the_other_less_and_less():
+def test_starts_with_the_preferred_count_then_times_the_other_less_and_less():
     chooser = UpdateThreadChooser([2, 1], reprobe_every=4)
     used = run(chooser, {2: 8.0, 1: 14.0}, 40)      # a quiet machine: 2 threads win
-    assert used[:2] == [2, 1]
+    assert used[:5] == [2, 2, 2, 2, 1]                # the other count is first timed after 4 updates
     retimings = [i for i, t in enumerate(used) if t == 1][1:]
-    assert retimings == [4, 13, 30]                   # gaps of 8 then 16: each retiming confirmed the choice
+    assert retimings == [13, 30]                      # gaps of 8 then 16: each timing confirmed the choice
     assert chooser.best == 2
+
+
+def test_switches_at_the_first_timing_when_the_preferred_count_is_slow():
+    chooser = UpdateThreadChooser([2, 1], reprobe_every=4)
+    used = run(chooser, {2: 77.0, 1: 20.0}, 12)      # a loaded machine from the start
+    assert used[:5] == [2, 2, 2, 2, 1] and set(used[5:9]) == {1}
+    assert chooser.best == 1
 
 
 def test_follows_the_machine_when_outside_load_makes_more_threads_slower():

@@ -5,10 +5,14 @@ that other work keeps busy, more threads may not pay: a thread waits for the slo
 meeting point (once per minibatch, see :mod:`visfly_dist.training.parallel_update`; with OpenMP's
 threads, after every operator, where 2 threads were measured 3-10x slower than one at a load
 average of 6 on 2 cores). The load is not known in advance and changes during a run,
-so :class:`UpdateThreadChooser` measures: it runs an update with each candidate, keeps the fastest,
-and tries the others again now and then: after 8 updates, then twice as long each time a retiming
-confirms the choice (up to 64), and after 8 again when the choice changes. On a quiet machine the
-retimings cost a few percent of the update time; under outside load they save most of it.
+so :class:`UpdateThreadChooser` measures: it starts with the preferred candidate (every CPU), times
+the others after 8 updates, keeps the fastest, and tries the others again now and then: twice as
+long after each retiming that confirms the choice (up to 64 updates), and after 8 again when the
+choice changes. The first timing of the others waits 8 updates because a split update degrades
+gently under load (measured 1.9-5.4 s per update against 2.7-4.3 s on one thread, while OpenMP
+threads took 8-14 s), so a short run does not pay for a slow one-thread update it rarely needs.
+On a quiet machine the retimings cost a few percent of the update time; under outside load they
+save most of it.
 """
 
 from __future__ import annotations
@@ -52,19 +56,18 @@ class UpdateThreadChooser:
 
     def next(self) -> int:
         """Threads for the coming update."""
-        untimed = [c for c in self.candidates if c not in self.seconds]
-        if untimed:
-            return untimed[0]
+        if self.candidates[0] not in self.seconds:
+            return self.candidates[0]
         best = self.best
         others = [c for c in self.candidates if c != best]
         if others and self._since_retiming >= self.interval:
-            return min(others, key=lambda c: self.measured_at[c])
+            return min(others, key=lambda c: self.measured_at.get(c, -1))  # never timed first, then the stalest
         return best
 
     def record(self, threads: int, seconds: float) -> None:
         """The update just run with ``threads`` took ``seconds``."""
         before = self.best
-        retiming = threads != before and threads in self.seconds
+        retiming = threads != before
         self.updates += 1
         self.seconds[threads] = float(seconds)
         self.measured_at[threads] = self.updates
