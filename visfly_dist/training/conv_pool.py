@@ -33,8 +33,8 @@ from visfly_dist.training.native_kernels import load_kernels
 PHASE_MAX_IN_CHANNELS = 3
 """Above this many input channels the plain convolution and pool are faster."""
 
-_PHASE_PARAMS: "weakref.WeakKeyDictionary[torch.nn.Conv2d, tuple[tuple[int, ...], torch.Tensor, torch.Tensor | None]]" = (
-    weakref.WeakKeyDictionary())
+_PhaseParams = tuple[tuple[int, ...], torch.Tensor, "torch.Tensor | None"]
+_PHASE_PARAMS: "weakref.WeakKeyDictionary[torch.nn.Conv2d, _PhaseParams]" = weakref.WeakKeyDictionary()
 """Per convolution: the phase kernel and bias of its parameters at a version (see :func:`phase_params`)."""
 
 
