@@ -120,3 +120,17 @@ def test_steps_without_gradients_match_the_torch_path():
     for name in ("pos", "vel", "quat", "omega"):
         torch.testing.assert_close(getattr(states[True], name), getattr(states[False], name), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(states[True].rotor, states[False].rotor, rtol=1e-5, atol=1e-2)
+
+
+def test_steps_without_gradients_skip_the_autograd_node_and_equal_steps_with_it():
+    """The direct NumPy call gives bit for bit the states of the autograd node, and records nothing."""
+    n = 16
+    quad = Quadrotor(DynamicsConfig(controller="ctbr"), num_agents=n)
+    pos, vel, quat, omega, action = (x.float() for x in _start(n, seed=7))
+    start = quad.initial_state(pos=pos + 1, vel=vel, quat=quat, omega=omega)
+    with torch.no_grad():
+        plain = quad.step(start, action)
+    recorded = quad.step(start, action.clone().requires_grad_())
+    assert plain.pos.grad_fn is None and "CtbrStepFunction" in type(recorded.pos.grad_fn).__name__
+    for name in ("pos", "vel", "quat", "omega", "rotor", "ground_contact"):
+        assert torch.equal(getattr(plain, name), getattr(recorded, name)), name

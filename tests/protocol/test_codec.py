@@ -127,6 +127,7 @@ def _nd(dtype="<f4", shape=(2,), offset=0, nbytes=8):
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=[1] * 9)}), "at most 8"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(nbytes="8")}), "outside the payload"),
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(1 << 20, 1 << 20))}), "exceeds the bound"),
+    (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(1 << 32, 1 << 32))}), "exceeds the bound"),  # 2**64
     (_raw({"version": PROTOCOL_VERSION, "type": "x", "a": _nd(shape=(True, 2))}), "non-negative ints"),
     (_raw({1: "int keys", "version": PROTOCOL_VERSION, "type": "x"}), "not a valid msgpack message"),
 ])

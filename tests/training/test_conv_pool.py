@@ -9,7 +9,7 @@ import torch.nn.functional as F
 from gymnasium import spaces
 from torch import nn
 
-from visfly_dist.training.conv_pool import conv_maxpool2, phase_form_applies, phase_max, phase_weight
+from visfly_dist.training.conv_pool import conv_maxpool2, phase_form_applies, phase_max, phase_weight, space_to_depth
 from visfly_dist.training.native_kernels import load_kernels
 from visfly_dist.training.extractors import VisflyExtractor
 
@@ -100,3 +100,43 @@ def test_native_phase_max_ties_go_to_the_first_and_nan_wins() -> None:
     assert out[0].item() == 3.0 and torch.isnan(out[1]) and out[2].item() == 4.0
     out.backward(torch.ones_like(out))
     assert grouped.grad.tolist() == [[0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]
+
+
+@needs_kernels
+def test_native_phase_max_without_grad_equals_amax() -> None:
+    torch.manual_seed(3)
+    grouped = torch.randn(16, 30, 30, 6, 4)
+    with torch.no_grad():
+        assert torch.equal(phase_max(grouped), grouped.amax(-1))
+    assert torch.equal(phase_max(grouped), grouped.amax(-1))  # a tensor that needs no gradient
+
+
+def test_inference_keeps_the_phase_kernel_until_a_parameter_changes() -> None:
+    """Without gradients the phase kernel is reused; an optimizer step or a loaded state rebuilds it."""
+    torch.manual_seed(4)
+    conv = nn.Conv2d(1, 6, 5)
+    x = torch.rand(4, 1, 64, 64)
+    with torch.no_grad():
+        first = conv_maxpool2(x, conv)
+        assert torch.equal(conv_maxpool2(x, conv), first)
+        torch.testing.assert_close(first, _plain(x, conv), rtol=1e-5, atol=1e-5)
+    optimizer = torch.optim.SGD(conv.parameters(), lr=0.5)
+    conv_maxpool2(x, conv).sum().backward()  # with gradients: built fresh, reaches the parameters
+    assert conv.weight.grad is not None and conv.bias.grad is not None
+    optimizer.step()
+    with torch.no_grad():
+        stepped = conv_maxpool2(x, conv)
+        assert not torch.equal(stepped, first)
+        assert torch.equal(stepped, conv_maxpool2(x, conv.requires_grad_(False)))
+        torch.testing.assert_close(stepped, _plain(x, conv), rtol=1e-5, atol=1e-5)
+        conv.load_state_dict({"weight": torch.zeros_like(conv.weight), "bias": torch.ones_like(conv.bias)})
+        assert torch.equal(conv_maxpool2(x, conv), torch.ones_like(first))
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_space_to_depth_without_grad_is_pixel_unshuffle_channels_last(channels: int) -> None:
+    x = torch.rand(5, channels, 12, 8).contiguous(memory_format=torch.channels_last)
+    reference = F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        out = space_to_depth(x)
+    assert torch.equal(out, reference) and out.stride() == reference.stride()

@@ -19,6 +19,7 @@ them), including its conventions at kinks (clamps pass the gradient on their clo
 
 from __future__ import annotations
 
+import contextlib
 from functools import cache
 from typing import Any
 
@@ -40,7 +41,7 @@ def _np(x: torch.Tensor) -> np.ndarray:
 
 @cache
 def _blas() -> ThreadpoolController:
-    """NumPy's BLAS, limited to one thread while a step runs: its matmuls here are tens of
+    """NumPy's BLAS, limited to one thread while a step of many agents runs: its matmuls here are tens of
     microseconds, and OpenBLAS's threads, waiting on a busy core, made them 20x slower (measured
     at 4,096 agents on a loaded 2-core machine)."""
     return ThreadpoolController().select(user_api="blas")
@@ -222,6 +223,35 @@ class CtbrStep:
         return g, g_action
 
 
+BLAS_SERIAL_MAX_AGENTS = 256
+"""Up to this many agents a step's matmuls stay under OpenBLAS's threshold for threading
+(m * n * k <= 4 * 65536)."""
+
+
+def _one_blas_thread(n: int) -> Any:
+    """A context that holds NumPy's BLAS to one thread for a step of ``n`` agents.
+
+    Below ``BLAS_SERIAL_MAX_AGENTS`` the matmuls (17 x 57 by 57 x n at most) are under OpenBLAS's
+    own threading threshold, so the limit (about 10 us to set and restore) is skipped.
+    """
+    return contextlib.nullcontext() if n <= BLAS_SERIAL_MAX_AGENTS else _blas().limit(limits=1)
+
+
+def ctbr_step(pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor, rotor: torch.Tensor,
+              action: torch.Tensor, step: CtbrStep) -> tuple[tuple[torch.Tensor, ...], list[Any]]:
+    """One CTBR control step on batch-first CPU tensors, unrecorded: the next
+    ``(pos, vel, quat, omega, rotor, contact)`` and the tape for :meth:`CtbrStep.backward`.
+
+    Steps without gradients call it directly (``Quadrotor.step``), skipping ``autograd.Function``'s
+    bookkeeping; :class:`CtbrStepFunction` wraps it with the reverse pass.
+    """
+    s = np.concatenate([x.detach().numpy() for x in (pos, vel, quat, omega, rotor)], axis=1).T
+    with _one_blas_thread(s.shape[1]):
+        out, contact, tape = step.forward(np.ascontiguousarray(s), np.ascontiguousarray(action.detach().numpy().T))
+    out = np.ascontiguousarray(out.T)
+    return (*(torch.from_numpy(x) for x in np.split(out, SPLITS, axis=1)), torch.from_numpy(contact)), tape
+
+
 class CtbrStepFunction(torch.autograd.Function):
     """``(pos, vel, quat, omega, rotor, action) -> (pos', vel', quat', omega', rotor', contact)``, all
     batch-first CPU tensors, through :class:`CtbrStep`: one node in the autograd graph."""
@@ -229,20 +259,16 @@ class CtbrStepFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
                 rotor: torch.Tensor, action: torch.Tensor, step: CtbrStep) -> tuple[torch.Tensor, ...]:
-        s = np.concatenate([x.detach().numpy() for x in (pos, vel, quat, omega, rotor)], axis=1).T
-        with _blas().limit(limits=1):
-            out, contact, tape = step.forward(np.ascontiguousarray(s), np.ascontiguousarray(action.detach().numpy().T))
+        outputs, tape = ctbr_step(pos, vel, quat, omega, rotor, action, step)
         ctx.step, ctx.tape = step, tape
-        out = np.ascontiguousarray(out.T)
-        contact = torch.from_numpy(contact)
-        ctx.mark_non_differentiable(contact)
-        return (*(torch.from_numpy(x) for x in np.split(out, SPLITS, axis=1)), contact)
+        ctx.mark_non_differentiable(outputs[-1])
+        return outputs
 
     @staticmethod
     @once_differentiable
     def backward(ctx: Any, *grads: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         g = np.concatenate([x.numpy() for x in grads[:5]], axis=1).T.copy()
-        with _blas().limit(limits=1):
+        with _one_blas_thread(g.shape[1]):
             g_s, g_action = ctx.step.backward(ctx.tape, g)
         g_s = np.ascontiguousarray(g_s.T)
         return (*(torch.from_numpy(x) for x in np.split(g_s, SPLITS, axis=1)),

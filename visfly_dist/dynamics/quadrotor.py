@@ -6,7 +6,7 @@ from typing import Callable
 
 import torch
 
-from visfly_dist.dynamics.adjoint import CtbrStep, CtbrStepFunction
+from visfly_dist.dynamics.adjoint import CtbrStep, CtbrStepFunction, ctbr_step
 from visfly_dist.dynamics.airframe import Airframe, load_airframe
 from visfly_dist.dynamics.config import DynamicsConfig
 from visfly_dist.dynamics.controllers import make_controller
@@ -183,8 +183,12 @@ class Quadrotor:
 
     def _advance_adjoint(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
                          rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
-        """The control step with gradients, as one autograd node (``dynamics.adjoint``)."""
-        return CtbrStepFunction.apply(pos, vel, quat, omega, rotor, action.to(self.dtype), self._adjoint)
+        """The control step with gradients, as one autograd node (``dynamics.adjoint``); without
+        them, the same NumPy forward called directly."""
+        inputs = (pos, vel, quat, omega, rotor, action.to(self.dtype))
+        if torch.is_grad_enabled() and any(x.requires_grad for x in inputs):
+            return CtbrStepFunction.apply(*inputs, self._adjoint)
+        return ctbr_step(*inputs, self._adjoint)[0]
 
     def _pack(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
               rotor: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

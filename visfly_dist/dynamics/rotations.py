@@ -7,6 +7,8 @@ y, then roll about the new x (ZYX, intrinsic).
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 
@@ -22,14 +24,38 @@ def quat_multiply(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     ), dim=-1)
 
 
+# Entry k of the row-major matrix is SCALE[k] * (q_a q_b + SIGN[k] q_c q_d) (+ 1 on the diagonal),
+# with (a, b) = FIRST[k] and (c, d) = SECOND[k] as flat indices 4 a + b into the outer product q q^T.
+_W, _X, _Y, _Z = range(4)
+_FIRST = (4 * _Y + _Y, 4 * _X + _Y, 4 * _X + _Z, 4 * _X + _Y, 4 * _X + _X, 4 * _Y + _Z, 4 * _X + _Z, 4 * _Y + _Z,
+          4 * _X + _X)
+_SECOND = (4 * _Z + _Z, 4 * _W + _Z, 4 * _W + _Y, 4 * _W + _Z, 4 * _Z + _Z, 4 * _W + _X, 4 * _W + _Y, 4 * _W + _X,
+           4 * _Y + _Y)
+_SIGN = (1.0, -1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0)
+_SCALE = (-2.0, 2.0, 2.0, 2.0, -2.0, 2.0, 2.0, 2.0, -2.0)
+
+
+@functools.lru_cache(maxsize=16)
+def _rotmat_tables(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, ...]:
+    def table(values: tuple, kind: torch.dtype) -> torch.Tensor:
+        return torch.tensor(values, dtype=kind, device=device)
+
+    return table(_FIRST, torch.long), table(_SECOND, torch.long), table(_SIGN, dtype), table(_SCALE, dtype)
+
+
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (body to world)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack((
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ), dim=-1).reshape(q.shape[:-1] + (3, 3))
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (body to world).
+
+    The textbook entries, ``1 - 2 (y^2 + z^2)``, ``2 (x y - w z)``, ..., computed from the outer
+    product ``q q^T`` in a few batched operations instead of some forty small ones (the task hooks
+    call this every step). The values are bit for bit those of the entry-by-entry form:
+    ``1 - 2 s`` is ``1 + (-2) s`` and ``a - b`` is ``a + (-1) b`` in IEEE arithmetic.
+    """
+    first, second, sign, scale = _rotmat_tables(q.dtype, q.device)
+    products = (q[..., :, None] * q[..., None, :]).flatten(-2)
+    out = scale * (products.index_select(-1, first) + sign * products.index_select(-1, second))
+    out[..., ::4] += 1  # the diagonal, entries 0, 4 and 8
+    return out.reshape(q.shape[:-1] + (3, 3))
 
 
 def rotate(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

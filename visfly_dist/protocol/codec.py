@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+import math
 import struct
 
 import msgpack
@@ -70,7 +71,7 @@ def _array_hook(payload: bytes, tail_start: int):
         if type(offset) is not int or type(nbytes) is not int or offset < 0 or nbytes < 0 \
                 or offset + nbytes > tail_size:
             raise ProtocolError(f"array bytes [{offset!r}, +{nbytes!r}) lie outside the payload's {tail_size}-byte tail")
-        count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+        count = math.prod(shape)  # Python ints: no overflow, and no NumPy call per array
         if count > MAX_ARRAY_ELEMENTS:
             raise ProtocolError(f"array of {count} elements exceeds the bound {MAX_ARRAY_ELEMENTS}")
         dt = np.dtype(dtype)
