@@ -57,3 +57,23 @@ def test_landing_trains_with_bptt_by_default_and_with_ppo_defaults_under_algo_pp
     hover = TrainConfig(task="hover", algo="bptt").resolved()
     assert (hover.algo, hover.horizon, hover.lr, hover.num_envs) == ("bptt", 32, 3e-4, 16)
     assert TrainConfig(task="navigation").resolved().algo == "ppo"
+
+
+def test_overlap_is_on_by_default_only_when_every_worker_is_remote():
+    assert TrainConfig(task="navigation").resolved().overlap is False            # local workers need the cores
+    assert TrainConfig(task="navigation", workers=2).resolved().overlap is False
+    assert TrainConfig(task="navigation", workers=0, connect=("tcp/10.0.0.2:7447",)).resolved().overlap is True
+    assert TrainConfig(task="navigation", workers=0, overlap=False).resolved().overlap is False  # given values win
+    assert TrainConfig(task="navigation", overlap=True).resolved().overlap is True
+    assert TrainConfig(task="landing", workers=0).resolved().overlap is False    # BPTT has no PPO update to overlap
+
+
+def test_overlap_flags_reach_the_config():
+    import argparse
+
+    from visfly_dist.training.train_cli import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for flags, expected in ([], None), (["--overlap"], True), (["--no-overlap"], False):
+        assert config_from_args(parser.parse_args(["navigation", *flags])).overlap is expected

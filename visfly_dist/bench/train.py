@@ -206,7 +206,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
     Returns:
         The row: ``task, delay_ms, workers, timesteps, env_steps_per_s, rollout_env_steps_per_s,
         loop_s, rollout_s, update_s, update_share, learner_busy, workers_busy, startup_s,
-        success_rate, timing``.
+        success_rate, timing, overlap`` (whether the run trained with ``--overlap``).
     """
     import torch
 
@@ -228,6 +228,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
                           progress=False, workers=count if remote is None else 0,
                           run_id=remote.run_id if remote else None, overrides=overrides)
         cfg = replace(cfg, **(changes or {}))
+        overlap = bool(cfg.resolved().overlap)
         with watch_sb3(monitor.snapshot) as clock, contextlib.redirect_stdout(printed):
             before = monitor.snapshot()
             result = train(cfg)
@@ -243,7 +244,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
         if remote is not None:
             remote.close()
         shutil.rmtree(out_dir, ignore_errors=True)
-    return _row(task, delay_ms, count, result, clock, before, after)
+    return {**_row(task, delay_ms, count, result, clock, before, after), "overlap": overlap}
 
 
 def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: LoopClock, before: CpuSnapshot,
@@ -314,8 +315,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "with ratios to the 0 ms run (e.g. --delay-ms 0 20)")
     parser.add_argument("--workers", type=int, default=None, help="scene workers (default: the task's)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the run")
-    parser.add_argument("--overlap", action="store_true",
-                        help="train with --overlap (next rollout collected during the update, policy lag 1)")
+    parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
+                        help="train with --overlap / --no-overlap (next rollout collected during the update, "
+                             "policy lag 1); default: as visfly-dist train (on with remote workers only)")
     parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")
 
 
@@ -326,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
     timesteps = args.timesteps or (QUICK_TIMESTEPS if args.quick else DEFAULT_TIMESTEPS)
     result: dict[str, Any] = {"machine": machine_info()}
     result |= bench_train(args.task, timesteps, args.delay_ms, args.workers, args.seed,
-                          changes={"overlap": True} if args.overlap else None,
+                          changes=None if args.overlap is None else {"overlap": args.overlap},
                           log=lambda line: print(line, flush=True))
     result["load_average_end"] = load_average()
     print(report.text_table(result["rows"]))

@@ -116,8 +116,12 @@ class TrainConfig:
         normalize: running normalisation of vector observations and of rewards (VecNormalize).
         progress: print progress lines.
         overlap: collect the next rollout while PPO updates on the last one (policy lag of one
-            update, see :mod:`visfly_dist.training.overlap`). Off by default: on hover (20k steps,
-            short rollouts) the lag cost most of what PPO learned; measure it on your task.
+            update, see :mod:`visfly_dist.training.overlap`). ``None``: on when every scene worker
+            is remote (``workers=0``), where the learner would otherwise sit idle through one
+            network round trip per step (20 ms away: 0.96 of the 0 ms loop against 0.78 without);
+            off with local workers, which need the cores the overlapped update would take. The lag
+            can cost sample efficiency: on hover (20k steps, short rollouts) it cost most of what
+            PPO learned; navigation results are in docs/RESULTS.md.
         scene_roots: folders scene files may be loaded from (``--scene-root``); ``scenes`` paths
             must lie under one of them.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
@@ -152,7 +156,7 @@ class TrainConfig:
     backbone: str = "visfly-cnn"
     normalize: bool = True
     progress: bool = True
-    overlap: bool = False
+    overlap: bool | None = None
     scene_roots: tuple[str, ...] = ()
     overrides: dict[str, Any] = field(default_factory=dict)
     algo: str | None = None
@@ -165,8 +169,9 @@ class TrainConfig:
         if algo in ("bptt", "shac"):
             defaults.update(GRADIENT_DEFAULTS.get(self.task, {}))
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
+        overlap = self.overlap if self.overlap is not None else (algo == "ppo" and self.workers == 0)
         cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
-                      overrides=dict(self.overrides), algo=algo, **filled)
+                      overrides=dict(self.overrides), algo=algo, overlap=overlap, **filled)
         if cfg.out is None:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg

@@ -59,9 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint-every", type=int, default=50_000, metavar="STEPS", help="0: only the final model")
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
-    parser.add_argument("--overlap", action="store_true",
+    parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                         help="collect the next rollout while PPO updates (workers and learner busy at once; "
-                             "policy lag of one update, which can cost sample efficiency)")
+                             "policy lag of one update, which can cost sample efficiency); default: on when "
+                             "every worker is remote (--workers 0), off otherwise")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
