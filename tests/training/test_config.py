@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import pytest
 
 from visfly_dist.aggregator.config import PoolConfig
@@ -9,6 +11,7 @@ from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.training.config import TASK_DEFAULTS, TrainConfig, parse_override
 from visfly_dist.training.ppo import env_kwargs
+from visfly_dist.training.train_cli import add_arguments, config_from_args
 
 
 def test_parse_override_reads_json_else_text() -> None:
@@ -69,10 +72,6 @@ def test_overlap_is_on_by_default_only_when_every_worker_is_remote():
 
 
 def test_overlap_flags_reach_the_config():
-    import argparse
-
-    from visfly_dist.training.train_cli import add_arguments, config_from_args
-
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     for flags, expected in ([], None), (["--overlap"], True), (["--no-overlap"], False):

@@ -85,6 +85,11 @@ def conv_maxpool2(x: torch.Tensor, conv: torch.nn.Conv2d) -> torch.Tensor:
     return phase_max(grouped).permute(0, 3, 1, 2)
 
 
+def _records_grad(*tensors: torch.Tensor) -> bool:
+    """Whether autograd records an operation on ``tensors`` here (grad mode on, one of them needs it)."""
+    return torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+
+
 def space_to_depth(x: torch.Tensor) -> torch.Tensor:
     """``pixel_unshuffle(x, 2)`` in channels-last memory.
 
@@ -92,7 +97,7 @@ def space_to_depth(x: torch.Tensor) -> torch.Tensor:
     ``pixel_unshuffle`` and the layout change at 16 images, 3-7x at 512); with gradients torch's
     own pair, whose backward pass is the faster one.
     """
-    if torch.is_grad_enabled() and x.requires_grad:
+    if _records_grad(x):
         return F.pixel_unshuffle(x, 2).contiguous(memory_format=torch.channels_last)
     batch, channels, height, width = x.shape
     out = torch.empty(batch, height // 2, width // 2, channels, 4, dtype=x.dtype, device=x.device)
@@ -111,7 +116,7 @@ def phase_params(conv: torch.nn.Conv2d) -> tuple[torch.Tensor, torch.Tensor | No
     steps and ``load_state_dict`` advance. That saves two small kernels per forward pass.
     """
     params = [p for p in (conv.weight, conv.bias) if p is not None]
-    if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+    if _records_grad(*params):
         return phase_weight(conv.weight), None if conv.bias is None else conv.bias.repeat_interleave(4)
     key = tuple(v for p in params for v in (id(p), p.data_ptr(), p._version))
     cached = _PHASE_PARAMS.get(conv)
@@ -131,14 +136,10 @@ def phase_max(grouped: torch.Tensor) -> torch.Tensor:
     ``amax`` when no gradient is needed, else torch's ``max`` with indices.
     """
     lib, _ = load_kernels()
-    if lib is None or grouped.dtype != torch.float32 or grouped.device.type != "cpu":
-        if not torch.is_grad_enabled() or not grouped.requires_grad:
-            return grouped.amax(-1)
-        return grouped.max(-1).values
-    if not torch.is_grad_enabled() or not grouped.requires_grad:
-        out, _ = _native_phase_max(lib, grouped)
-        return out
-    return _NativePhaseMax.apply(grouped)
+    native = lib is not None and grouped.dtype == torch.float32 and grouped.device.type == "cpu"
+    if not _records_grad(grouped):
+        return _native_phase_max(lib, grouped)[0] if native else grouped.amax(-1)
+    return _NativePhaseMax.apply(grouped) if native else grouped.max(-1).values
 
 
 def _native_phase_max(lib: Any, grouped: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -117,13 +117,14 @@ def shard_slices(size: int, shards: int) -> list[slice]:
 
 def minibatch_gradients(policy: ActorCriticPolicy, data: Any, settings: UpdateSettings, discrete: bool,
                         pool: ThreadPoolExecutor | None, shards: int) -> ShardStats:
-    """Gradients of one minibatch accumulated into ``policy`` (zero them first), its parts run on
-    ``pool`` and the calling thread; returns the loss terms (means) and the clipped share and KL."""
+    """Gradients of one minibatch accumulated into ``policy`` (zero them first), its ``shards`` parts
+    run on the calling thread and ``pool`` (``None`` for one part); returns the loss terms (means)
+    and the clipped share and KL."""
     batch_size = len(data.advantages)
     advantages = data.advantages
     if settings.normalize_advantage and batch_size > 1:
         advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
-    parts = shard_slices(batch_size, shards if pool is not None else 1)
+    parts = shard_slices(batch_size, shards)
 
     def run(rows: slice) -> ShardStats:
         return shard_loss_backward(policy, data, advantages, rows, batch_size, settings, discrete)
