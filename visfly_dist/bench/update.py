@@ -109,7 +109,7 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
     return {"task": task, "mode": mode, "threads": threads, "samples": samples, "epochs": cfg.n_epochs, "batch_size": cfg.batch_size,
             "kernels": "native" if load_kernels()[0] is not None else "torch",
             "update_cpu_s": round(update_cpu, 3), "update_wall_s": round(float(np.median(wall)), 3),
-            "ms_per_sample_pass": round(update_cpu / (samples * cfg.n_epochs) * 1e3, 4)}
+            "ms_per_sample_pass": round(update_cpu / (samples * cfg.n_epochs) * 1e3, 6)}
 
 
 def _sample(space: Any, n: int, rng: np.random.Generator) -> np.ndarray:
