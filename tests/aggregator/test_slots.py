@@ -87,3 +87,21 @@ def test_a_swap_loads_the_next_source_under_a_fresh_key_and_a_failed_move_change
     assert table.slots[0].source == "second" and table.slots[0].metadata == {"goal": [1, 2, 3]}
     table.orphan_worker("a")
     assert table.plan_swap(0, "third", pool.generations) is None and table.slots[0].source == "third"
+
+
+def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key():
+    pool = FakePool("a", "b")
+    table = SlotTable(["s"] * 4, agents_per_scene=1)
+    start = table.revision
+    plan = table.plan_placement(pool.live, pool.generations)
+    assert table.revision == start  # a plan alone serves nothing yet
+    _carry_out(table, plan)
+    placed = table.revision
+    assert placed > start
+    assert table.orphan_worker("nobody") == [] and table.revision == placed
+    move = table.plan_swap(0, "t", pool.generations)
+    assert table.revision == placed
+    table.fail_move(0, move)
+    assert table.revision == placed
+    table.orphan_worker("a")
+    assert table.revision > placed

@@ -52,6 +52,8 @@ log = logging.getLogger(__name__)
 
 SPAWN_POOL_MIN = 256
 UNLOAD_DELAY_COLLECTS = 2
+MAX_CACHED_PLANS = 8
+"""Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
 __all__ = ["Aggregator", "Observation", "StepTicket"]
 
@@ -153,6 +155,8 @@ class Aggregator:
         self._spawn_generation: dict[tuple, int] = {}  # refreshes asked for, per pool (seeds them)
         self._spawn_next: dict[tuple, np.ndarray] = {}  # a refresh that arrived, used once the pool is drawn
         self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
+        self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]] = {}
+        self._plans_revision = -1
         self._rng = np.random.default_rng(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
         self._images = ImageSegments(self.run_id, cameras) if pool.shared_memory else None
@@ -282,7 +286,7 @@ class Aggregator:
         self._maintain()
         ticket = StepTicket(agents, spawn_agents, empty_observation(self.cameras, len(agents)),
                             empty_observation(self.cameras, len(spawn_agents)), [], t_start)
-        obs_plan = self._plan_entries(agents)
+        obs_plan = self._step_plan(agents)
         spawn_plan = self._plan_entries(spawn_agents)
         requests, parts = [], []
         for wid in sorted(set(obs_plan) | set(spawn_plan)):
@@ -397,6 +401,20 @@ class Aggregator:
             image[agents] = obs.images[name][rows]
         for key in ("collision", "inside", "nearest", "distance"):
             getattr(last, key)[agents] = getattr(obs, key)[rows]
+
+    def _step_plan(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]:
+        """:meth:`_plan_entries` of the stepped agents, kept while the slot table is unchanged: a
+        training loop steps the same agents (all, or its groups) on the same workers every time."""
+        key = agents.tobytes()
+        if self._plans_revision != self.table.revision:
+            self._plans.clear()
+            self._plans_revision = self.table.revision
+        plan = self._plans.get(key)
+        if plan is None:
+            if len(self._plans) >= MAX_CACHED_PLANS:
+                self._plans.clear()
+            plan = self._plans[key] = self._plan_entries(agents)
+        return plan
 
     def _plan_entries(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]:
         """Per worker: scene keys, counts, the rows of ``agents`` in request order, and the slots."""

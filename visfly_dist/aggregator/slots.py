@@ -56,6 +56,7 @@ class SlotTable:
         self.agents_per_scene = int(agents_per_scene)
         self.slots = [Slot(i, source, f"s{i}v0") for i, source in enumerate(sources)]
         self.agent_scene = np.arange(len(self.slots) * self.agents_per_scene, dtype=np.int64) // self.agents_per_scene
+        self.revision = 0  # bumped whenever a slot's worker or key changes: plans over the table are stale
 
     def __len__(self) -> int:
         return len(self.slots)
@@ -87,6 +88,8 @@ class SlotTable:
                 lost.append(s.index)
             if s.move is not None and s.move.worker == worker_id:
                 s.move = None
+        if lost:
+            self.revision += 1
         return lost
 
     def plan_placement(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
@@ -143,6 +146,7 @@ class SlotTable:
         s.bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
         s.metadata = dict(metadata)
         s.move = None
+        self.revision += 1
         return old
 
     def fail_move(self, slot: int, move: Move) -> None:
