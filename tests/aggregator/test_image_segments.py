@@ -116,6 +116,12 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
     (dict(size=10), "size=10"),
     ("size+64", "request says"),
     (dict(blocks={"depth": HEADER_BYTES}), "this scene's cameras"),
+    (dict(seq_offset=20), "seq_offset=20"),
+    (dict(seq_offset=8), "seq_offset=8"),
+    (dict(seq_offset=HEADER_BYTES), "first block"),
+    (dict(entry_rows=[0]), "entry_rows has 1 rows for 2 scene entries"),
+    (dict(entry_rows=[0, -3]), "row indices >= 0"),
+    (dict(entry_rows=[0, 1 << 20]), "ends past the segment"),
     ("overlap", "overlaps the header or another block"),
     ("past the end", "ends past the segment"),
 ])

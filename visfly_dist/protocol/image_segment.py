@@ -85,6 +85,10 @@ class SegmentTarget:
         size: the file's size in bytes.
         seq: this request's sequence number (>= 1), written by the worker once the images are in.
         blocks: camera name -> byte offset of its ``(rows, C, H, W)`` block.
+        seq_offset: where the worker writes ``seq`` (8 bytes, before every block): several workers
+            can write one segment, each its own number (default :data:`SEQ_OFFSET`).
+        entry_rows: the block row of each request entry's first image (default: the entries one
+            after another from row 0); lets the learner lay a step's images out in observation order.
     """
 
     name: str
@@ -92,17 +96,27 @@ class SegmentTarget:
     size: int
     seq: int
     blocks: dict[str, int]
+    seq_offset: int = SEQ_OFFSET
+    entry_rows: tuple[int, ...] | None = None
 
     def to_message(self) -> dict[str, Any]:
-        return {"name": self.name, "nonce": self.nonce, "size": self.size, "seq": self.seq, "blocks": self.blocks}
+        msg: dict[str, Any] = {"name": self.name, "nonce": self.nonce, "size": self.size, "seq": self.seq,
+                               "blocks": self.blocks}
+        if self.seq_offset != SEQ_OFFSET:
+            msg["seq_offset"] = self.seq_offset
+        if self.entry_rows is not None:
+            msg["entry_rows"] = np.asarray(self.entry_rows, dtype=np.int64)
+        return msg
 
     @classmethod
     def parse(cls, msg: Any) -> "SegmentTarget":
         """Validate the request's ``image_segment`` map; ProtocolError naming what is wrong."""
         what = "step.image_segment"
-        if not isinstance(msg, Mapping) or set(msg) != {"name", "nonce", "size", "seq", "blocks"}:
+        required, optional = {"name", "nonce", "size", "seq", "blocks"}, {"seq_offset", "entry_rows"}
+        if not isinstance(msg, Mapping) or not required <= set(msg) <= required | optional:
             got = sorted(map(str, msg)) if isinstance(msg, Mapping) else type(msg).__name__
-            raise ProtocolError(f"{what} must be a map of name, nonce, size, seq, blocks; got {got}")
+            raise ProtocolError(f"{what} must be a map of name, nonce, size, seq, blocks (and optionally "
+                                f"seq_offset, entry_rows); got {got}")
         name = check_name(msg["name"])
         nonce, size, seq, blocks = msg["nonce"], msg["size"], msg["seq"], msg["blocks"]
         if not isinstance(nonce, bytes) or len(nonce) != NONCE_BYTES:
@@ -111,10 +125,25 @@ class SegmentTarget:
             raise ProtocolError(f"{what}.size={size!r} must be an int in [{HEADER_BYTES}, {MAX_SEGMENT_BYTES}]")
         if type(seq) is not int or not 1 <= seq <= MAX_SEQ:
             raise ProtocolError(f"{what}.seq={seq!r} must be an int in [1, 2**63 - 1]")
-        if not isinstance(blocks, Mapping) or not all(
+        if not isinstance(blocks, Mapping) or not blocks or not all(
                 isinstance(k, str) and type(v) is int and HEADER_BYTES <= v < size for k, v in blocks.items()):
             raise ProtocolError(f"{what}.blocks must map camera names to int offsets in [{HEADER_BYTES}, {size})")
-        return cls(name, nonce, size, seq, dict(blocks))
+        seq_offset = msg.get("seq_offset", SEQ_OFFSET)
+        if type(seq_offset) is not int or seq_offset % SEQ.size or not SEQ_OFFSET <= seq_offset \
+                or seq_offset + SEQ.size > min(blocks.values()):
+            raise ProtocolError(f"{what}.seq_offset={seq_offset!r} must be a multiple of {SEQ.size} in "
+                                f"[{SEQ_OFFSET}, first block - {SEQ.size}]")
+        return cls(name, nonce, size, seq, dict(blocks), seq_offset, _entry_rows(msg.get("entry_rows")))
+
+    def starts(self, counts: np.ndarray) -> np.ndarray:
+        """The block row of each entry's first image, checked against the entries' ``counts``."""
+        counts = np.asarray(counts, dtype=np.int64)
+        if self.entry_rows is None:
+            return np.cumsum(counts) - counts
+        if len(self.entry_rows) != len(counts):
+            raise ProtocolError(f"step.image_segment.entry_rows has {len(self.entry_rows)} rows for "
+                                f"{len(counts)} scene entries")
+        return np.asarray(self.entry_rows, dtype=np.int64)
 
     def check_blocks(self, nbytes: Mapping[str, int]) -> None:
         """ProtocolError unless every camera of ``nbytes`` (name -> block bytes) has a block inside the
@@ -129,3 +158,13 @@ class SegmentTarget:
                 raise ProtocolError(f"step.image_segment block of camera {cam!r} [{start}, {end}) overlaps the "
                                     f"header or another block, or ends past the segment's {self.size} bytes")
             end_before = end
+
+
+def _entry_rows(value: Any) -> tuple[int, ...] | None:
+    if value is None:
+        return None
+    rows = np.asarray(value)
+    if rows.ndim != 1 or not (np.issubdtype(rows.dtype, np.integer) or rows.size == 0) or (rows.size and rows.min() < 0) \
+            or (rows.size and rows.max() > MAX_SEGMENT_BYTES):
+        raise ProtocolError("step.image_segment.entry_rows must be a 1-D array of row indices >= 0")
+    return tuple(rows.astype(np.int64).tolist())

@@ -20,7 +20,7 @@ import numpy as np
 from visfly_dist.errors import ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
-    NONCE_BYTES, SEQ, SEQ_OFFSET, SHM_DIR, SegmentTarget, block_bytes, block_view,
+    NONCE_BYTES, SEQ, SHM_DIR, SegmentTarget, block_bytes, block_view,
 )
 
 MAX_MAPPINGS = 8
@@ -38,7 +38,8 @@ class SegmentMappings:
         """Writable ``(rows, C, H, W)`` views of each camera's block and ``""``; or ``None`` and why the
         segment cannot be used (no such file here, or another nonce in it: not the learner's host).
 
-        Marks the segment's images as being written (sequence number 0) until :meth:`publish`.
+        Marks the segment's images as being written (sequence number 0 at the target's
+        ``seq_offset``) until :meth:`publish`.
 
         Raises:
             ProtocolError: blocks that do not fit the cameras or the segment, or a file whose size
@@ -60,12 +61,12 @@ class SegmentMappings:
         self._maps.move_to_end(target.name)
         while len(self._maps) > self._max:
             _close(self._maps.popitem(last=False)[1])
-        SEQ.pack_into(mm, SEQ_OFFSET, 0)
+        SEQ.pack_into(mm, target.seq_offset, 0)
         return {c.name: block_view(mm, target.blocks[c.name], c, rows) for c in cameras}, ""
 
     def publish(self, target: SegmentTarget) -> None:
         """Mark ``target``'s images complete: its sequence number goes into the header."""
-        SEQ.pack_into(self._maps[target.name], SEQ_OFFSET, target.seq)
+        SEQ.pack_into(self._maps[target.name], target.seq_offset, target.seq)
 
     @staticmethod
     def _open(target: SegmentTarget) -> tuple[mmap.mmap | None, str]:

@@ -194,16 +194,19 @@ def render_scenes(items: Sequence[tuple]) -> list[dict[str, np.ndarray]]:
     return _render_all(items, [None] * len(items))
 
 
-def render_scenes_into(items: Sequence[tuple], out: dict[str, np.ndarray]) -> None:
-    """:func:`render_scenes` with every item's images written into ``out``, rows in item order.
+def render_scenes_into(items: Sequence[tuple], out: dict[str, np.ndarray], starts: Sequence[int] | None = None) -> None:
+    """:func:`render_scenes` with every item's images written into ``out``.
 
-    ``out``: camera name -> ``(total, C, H, W)`` C-contiguous array (e.g. a view of a shared-memory
-    segment). The native tracer writes depth and segmentation straight into it; other images are
-    copied in once.
+    ``out``: camera name -> ``(rows, C, H, W)`` C-contiguous array (e.g. a view of a shared-memory
+    segment). Item ``i``'s images go to rows ``starts[i]`` onwards (default: the items one after
+    another from row 0). The native tracer writes depth and segmentation straight into it; other
+    images are copied in once.
     """
-    ends = np.cumsum([len(item[1]) for item in items]).tolist()
-    outs = [{name: image[end - len(item[1]):end] for name, image in out.items()}
-            for item, end in zip(items, ends)]
+    counts = [len(item[1]) for item in items]
+    if starts is None:
+        starts = (np.cumsum(counts) - counts).tolist() if counts else []
+    outs = [{name: image[int(start):int(start) + count] for name, image in out.items()}
+            for start, count in zip(starts, counts)]
     for result, dest in zip(_render_all(items, outs), outs):
         for name, image in result.items():
             if not np.may_share_memory(image, dest[name]):

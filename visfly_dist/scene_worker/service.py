@@ -396,10 +396,10 @@ class SceneWorker:
             cameras = loaded[0].cameras
             if any(scene.cameras != cameras for scene in loaded):
                 raise ProtocolError("the scenes of one step request must carry the same cameras")
-            images, target = self._image_buffers(request, cameras, int(counts.sum()), reply)
+            images, target, starts = self._image_buffers(request, cameras, counts, reply)
             with self._timer.time("render", timings):
                 render_scenes_into([(scene.renderer, item.poses, scene.multi_agent, item.time)
-                                    for item, scene in zip(request.scenes, loaded)], images)
+                                    for item, scene in zip(request.scenes, loaded)], images, starts)
             if target is not None:
                 self._segments.publish(target)
                 reply["images_in_segment"] = True
@@ -414,21 +414,23 @@ class SceneWorker:
                              distance=answers.distance)
         return reply
 
-    def _image_buffers(self, request: StepRequest, cameras: Sequence[CameraSpec], rows: int,
-                       reply: dict[str, Any]) -> tuple[dict[str, np.ndarray], SegmentTarget | None]:
-        """Where the step's images go: the request's image segment if this worker can use it (and the
-        segment target), else fresh arrays for the reply (and None, with ``segment_refused`` set
-        when a segment was offered)."""
+    def _image_buffers(self, request: StepRequest, cameras: Sequence[CameraSpec], counts: np.ndarray,
+                       reply: dict[str, Any]) -> tuple[dict[str, np.ndarray], SegmentTarget | None, np.ndarray | None]:
+        """Where the step's images go: the request's image segment if this worker can use it (its views,
+        the segment target and each entry's first row there), else fresh arrays for the reply (and
+        None twice, with ``segment_refused`` set when a segment was offered)."""
         target = request.image_segment
         if target is not None and not self.session_config.shared_memory:
             reply["segment_refused"] = f"worker {self.worker_id!r} runs without shared memory (--no-shm)"
         elif target is not None:
+            starts = target.starts(counts)
+            rows = int((starts + counts).max()) if len(counts) else 0
             views, why = self._segments.views(target, cameras, rows)
             if views is not None:
-                return views, target
+                return views, target, starts
             log.info("replying inline: %s", why)
             reply["segment_refused"] = why
-        return {c.name: np.empty((rows, *c.shape), c.dtype) for c in cameras}, None
+        return {c.name: np.empty((int(counts.sum()), *c.shape), c.dtype) for c in cameras}, None, None
 
     def _check_pixels(self, request: StepRequest, loaded: Sequence[LoadedScene]) -> None:
         pixels = sum(len(item.poses) * scene.pixels_per_agent for item, scene in zip(request.scenes, loaded))
