@@ -55,6 +55,14 @@ def served(worker_factory):
     assert _shm_files(RUN) == []
 
 
+def _offer(segments: ImageSegments, worker: str, rows: int, generation: int = 1):
+    """A step segment for one request of ``rows`` poses (entries a: 3 rows, b: the rest) and its target."""
+    step = segments.offer([(worker, generation)], rows, 0)
+    if step is None:
+        return None, None
+    return step, segments.target(step, (worker, generation), [0, 3], [])
+
+
 def _step(poses: np.ndarray, target: SegmentTarget | None = None) -> dict:
     request = StepRequest((ScenePoses("a", poses[:3]), ScenePoses("b", poses[3:])), image_segment=target)
     return request.to_message()
@@ -65,21 +73,43 @@ def test_segment_images_equal_inline_images_bit_for_bit(served):
     poses = _poses(7)
     ok, inline = call(session, proc.rpc_key, _step(poses))
     assert ok and "images_in_segment" not in inline and "segment_refused" not in inline
-    for step in range(2):  # the second step finds the file gone and uses the worker's mapping
-        lease = segments.offer(proc.worker_id, 1, len(poses))
-        assert (lease.target.name in os.listdir("/dev/shm")) == (step == 0)
-        ok, reply = call(session, proc.rpc_key, _step(poses, lease.target))
+    for n in range(2):  # the second step finds the file gone and uses the worker's mapping
+        step, target = _offer(segments, proc.worker_id, len(poses))
+        assert (target.name in os.listdir("/dev/shm")) == (n == 0)
+        ok, reply = call(session, proc.rpc_key, _step(poses, target))
         assert ok and reply["images_in_segment"] is True and reply["images"] == {}
-        views, problem = segments.images(lease, reply)
-        assert problem == "" and lease.target.name not in os.listdir("/dev/shm")
+        assert segments.check(step, proc.worker_id, reply) == (True, "")
         for cam in CAMS:
-            assert views[cam.name].dtype == inline["images"][cam.name].dtype
-            np.testing.assert_array_equal(views[cam.name], inline["images"][cam.name])
+            assert step.obs[cam.name].dtype == inline["images"][cam.name].dtype
+            np.testing.assert_array_equal(step.obs[cam.name], inline["images"][cam.name])
         for key in ("collision", "inside", "nearest", "distance"):
             np.testing.assert_array_equal(reply[key], inline[key])
-        assert segments.release(lease)
+        assert segments.release(step) == [] and target.name not in os.listdir("/dev/shm")
+        del step  # nothing holds its images any more: the next step may use the segment again
     ok, health = call(session, proc.rpc_key, Health().to_message())
-    assert health["image_segments"] == {lease.target.name: lease.target.size}
+    assert health["image_segments"] == {target.name: target.size}
+
+
+def test_a_segment_is_not_offered_while_its_images_are_held_and_entries_land_at_their_rows(served):
+    proc, session, segments = served
+    poses = _poses(7, seed=5)
+    ok, inline = call(session, proc.rpc_key, _step(poses))
+    step = segments.offer([(proc.worker_id, 1)], 9, 0)
+    target = segments.target(step, (proc.worker_id, 1), [5, 0], [])  # entry a at rows 5-7, b at rows 0-3
+    ok, reply = call(session, proc.rpc_key, _step(poses, target))
+    assert ok and segments.check(step, proc.worker_id, reply) == (True, "")
+    depth = step.obs["depth"]
+    np.testing.assert_array_equal(depth[5:8], inline["images"]["depth"][:3])
+    np.testing.assert_array_equal(depth[0:4], inline["images"]["depth"][3:])
+    assert segments.release(step) == []
+    held = depth[0]  # a caller keeps one image: the segment stays theirs
+    other, _ = _offer(segments, proc.worker_id, 7)
+    assert other.segment is not step.segment
+    segments.release(other, failed=True)
+    del held, depth, step
+    again, _ = _offer(segments, proc.worker_id, 7)
+    assert again.segment.name == target.name  # free again once nothing refers to its images
+    segments.release(again)
     assert _shm_files(RUN) == []
 
 
@@ -87,21 +117,22 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
     proc, session, segments = served
     poses = _poses(7, seed=1)
     ok, inline = call(session, proc.rpc_key, _step(poses))
-    lease = ImageSegments(RUN, CAMS).offer("other", 1, len(poses))  # a real file, another nonce sent
-    for target, why in ((dataclasses.replace(lease.target, nonce=b"x" * 16), "another nonce"),
-                        (dataclasses.replace(lease.target, name=lease.target.name + "-gone"), "cannot open")):
+    other = ImageSegments(RUN, CAMS)
+    lease, lease_target = _offer(other, "other", len(poses))  # a real file, another nonce sent
+    for target, why in ((dataclasses.replace(lease_target, nonce=b"x" * 16), "another nonce"),
+                        (dataclasses.replace(lease_target, name=lease_target.name + "-gone"), "cannot open")):
         ok, reply = call(session, proc.rpc_key, _step(poses, target))
         assert ok and why in reply["segment_refused"] and "images_in_segment" not in reply
         for cam in CAMS:
             np.testing.assert_array_equal(reply["images"][cam.name], inline["images"][cam.name])
-    lease.segment.close()
+    other.close()
     learner = ImageSegments(RUN, CAMS)  # the learner stops offering a segment to that worker
-    refused = learner.offer("w", 1, len(poses))
+    refused, refused_target = _offer(learner, "w", len(poses))
     refused.segment.mm[:16] = b"y" * 16  # as if another host's /dev/shm held this name
-    ok, reply = call(session, proc.rpc_key, _step(poses, refused.target))
-    assert learner.images(refused, reply) == (None, "") and learner.release(refused)
-    assert learner.offer("w", 1, len(poses)) is None and learner.files() == []
-    assert learner.offer("w", 2, len(poses)) is not None  # a restarted worker is asked again
+    ok, reply = call(session, proc.rpc_key, _step(poses, refused_target))
+    assert learner.check(refused, "w", reply) == (False, "") and learner.release(refused) == []
+    assert learner.offer([("w", 1)], len(poses), 0) is None and learner.files() == []
+    assert learner.offer([("w", 2)], len(poses), 0) is not None  # a restarted worker is asked again
     learner.close()
 
 
@@ -118,7 +149,7 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
     (dict(blocks={"depth": HEADER_BYTES}), "this scene's cameras"),
     (dict(seq_offset=20), "seq_offset=20"),
     (dict(seq_offset=8), "seq_offset=8"),
-    (dict(seq_offset=HEADER_BYTES), "first block"),
+    (dict(seq_offset=image_shm.STEP_HEADER_BYTES), "first block"),
     (dict(entry_rows=[0]), "entry_rows has 1 rows for 2 scene entries"),
     (dict(entry_rows=[0, -3]), "row indices >= 0"),
     (dict(entry_rows=[0, 1 << 20]), "ends past the segment"),
@@ -128,8 +159,7 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
 def test_malformed_segment_requests_are_refused_and_the_worker_keeps_serving(served, change, match):
     proc, session, segments = served
     poses = _poses(7, seed=2)
-    lease = segments.offer(proc.worker_id, 1, len(poses))
-    target = lease.target
+    lease, target = _offer(segments, proc.worker_id, len(poses))
     if change == "size+64":
         target = dataclasses.replace(target, size=target.size + 64, name=target.name + "-big")
         Path("/dev/shm", target.name).write_bytes(bytes(target.size - 64))
@@ -155,22 +185,24 @@ def test_malformed_segment_requests_are_refused_and_the_worker_keeps_serving(ser
 def test_images_of_another_request_are_never_read(served):
     proc, session, segments = served
     poses = _poses(7, seed=3)
-    first = segments.offer(proc.worker_id, 1, len(poses))
-    ok, reply = call(session, proc.rpc_key, _step(poses, first.target))
-    assert segments.images(first, reply)[1] == "" and segments.release(first)
-    later = segments.offer(proc.worker_id, 1, len(poses))
-    assert later.segment is first.segment and later.target.seq > first.target.seq
+    first, first_target = _offer(segments, proc.worker_id, len(poses))
+    ok, reply = call(session, proc.rpc_key, _step(poses, first_target))
+    assert segments.check(first, proc.worker_id, reply)[1] == "" and segments.release(first) == []
+    first_segment = first.segment
+    del first
+    later, later_target = _offer(segments, proc.worker_id, len(poses))
+    assert later.segment is first_segment and later_target.seq > first_target.seq
     # The first request served again (as a late duplicate would be): its number lands in the header.
-    ok, stale = call(session, proc.rpc_key, _step(poses, first.target))
-    views, problem = segments.images(later, stale)
-    assert views is None and f"request {later.target.seq}" in problem
+    ok, stale = call(session, proc.rpc_key, _step(poses, first_target))
+    in_place, problem = segments.check(later, proc.worker_id, stale)
+    assert not in_place and f"request {later_target.seq}" in problem
     segments.release(later, failed=True)
     # A failed request's segment is retired: the worker may still write into it, so nobody reads it again.
-    fresh = segments.offer(proc.worker_id, 1, len(poses))
-    assert fresh.segment is not first.segment and fresh.target.name != first.target.name
-    ok, reply = call(session, proc.rpc_key, _step(poses, fresh.target))
-    views, problem = segments.images(fresh, reply)
-    assert problem == "" and views["depth"].shape == (7, 1, 24, 32) and segments.release(fresh)
+    fresh, fresh_target = _offer(segments, proc.worker_id, len(poses))
+    assert fresh.segment is not first_segment and fresh_target.name != first_target.name
+    ok, reply = call(session, proc.rpc_key, _step(poses, fresh_target))
+    assert segments.check(fresh, proc.worker_id, reply) == (True, "")
+    assert fresh.obs["depth"].shape == (7, 1, 24, 32) and segments.release(fresh) == []
 
 
 def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_close():
@@ -181,7 +213,8 @@ def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_clo
         obs = agg.observe(poses)
         np.testing.assert_allclose(obs.images["depth"], reference(agg, poses)["depth"], atol=1e-4)
         mapped = {h["worker_id"]: set(h["image_segments"]) for h in agg.health()}
-        assert sorted(mapped) == agg.workers and all(len(names) == 1 for names in mapped.values())
+        # one segment per step, shared by the workers, each writing its own rows
+        assert sorted(mapped) == agg.workers and len(set.union(*mapped.values())) == 1
         assert _shm_files(run) == []  # unlinked once each worker answered
         victim, pid = next(iter(agg.local_worker_pids().items()))
         os.kill(pid, signal.SIGKILL)
@@ -193,7 +226,7 @@ def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_clo
         np.testing.assert_array_equal(again.images["depth"], obs.images["depth"])
         (newcomer,) = set(agg.workers) - set(mapped)
         (fresh,) = [set(h["image_segments"]) for h in agg.health() if h["worker_id"] == newcomer]
-        # the replacement got segments of its own (more than one when requests overlapped under load)
+        # the replacement got segments it could open (the first one was unlinked before it started)
         assert fresh and not fresh & mapped[victim]
         assert _shm_files(run) == []
     finally:
@@ -216,19 +249,26 @@ def test_workers_that_see_another_dev_shm_step_inline(tmp_path, monkeypatch):
 def test_no_room_for_a_segment_means_inline_images(monkeypatch, tmp_path):
     monkeypatch.setattr(image_shm, "SHM_DIR", str(tmp_path / "missing"))
     segments = ImageSegments(RUN, CAMS)
-    assert segments.offer("w", 1, 4) is None and segments.offer("w", 1, 4) is None
+    assert segments.offer([("w", 1)], 4, 0) is None and segments.offer([("w", 1)], 4, 0) is None
     assert segments.files() == []
 
 
 def test_a_segment_grows_by_a_new_file_and_keeps_room_for_varying_rows():
     segments = ImageSegments(RUN, CAMS)
-    first = segments.offer("w", 1, 9)
-    assert segments.release(first)
-    again = segments.offer("w", 1, 16)  # room for 16 rows was made for 9
-    assert again.segment is first.segment and segments.release(again)
-    bigger = segments.offer("w", 1, 17)
-    assert bigger.segment is not first.segment and bigger.target.name != first.target.name
-    assert segments.files() == [f"/dev/shm/{bigger.target.name}"]  # the small one was unlinked
+    first = segments.offer([("w", 1)], 9, 3)
+    first_segment = first.segment
+    assert (first_segment.obs_rows, first_segment.spawn_rows) == (16, 4)
+    first_segment.users.add(("w", 1))  # as if "w" had written there
+    assert segments.release(first) == [] and segments.files() == []
+    del first
+    again = segments.offer([("w", 1)], 16, 4)  # room for 16 rows was made for 9
+    newcomer = segments.offer([("v", 1)], 1, 0)  # "v" never mapped the unlinked file: a new one
+    assert again.segment is first_segment and newcomer.segment is not first_segment
+    segments.release(again), segments.release(newcomer)
+    del again, newcomer
+    bigger = segments.offer([("w", 1)], 17, 0)
+    assert bigger.segment is not first_segment and bigger.segment.name != first_segment.name
+    assert segments.files() == [bigger.segment.path]  # the small one was unlinked
     segments.close()
     assert _shm_files(RUN) == []
 
@@ -238,11 +278,12 @@ def test_a_worker_without_shared_memory_refuses_segments(worker_factory):
     segments = ImageSegments(RUN, CAMS)
     with client_session(proc.endpoint, shm=False) as session:
         assert call(session, proc.rpc_key, LoadScene("a", "gen:pillars?seed=4", CAMS).to_message(), timeout=60.0)[0]
-        lease = segments.offer(proc.worker_id, 1, 2)
+        lease = segments.offer([(proc.worker_id, 1)], 2, 0)
+        target = segments.target(lease, (proc.worker_id, 1), [0], [])
         poses = _poses(2)
-        ok, reply = call(session, proc.rpc_key, StepRequest((ScenePoses("a", poses),), image_segment=lease.target)
+        ok, reply = call(session, proc.rpc_key, StepRequest((ScenePoses("a", poses),), image_segment=target)
                          .to_message())
         assert ok and "--no-shm" in reply["segment_refused"] and reply["images"]["depth"].shape == (2, 1, 24, 32)
-        assert segments.images(lease, reply) == (None, "") and segments.release(lease)
-        assert segments.offer(proc.worker_id, 1, 2) is None
+        assert segments.check(lease, proc.worker_id, reply) == (False, "") and segments.release(lease) == []
+        assert segments.offer([(proc.worker_id, 1)], 2, 0) is None
     segments.close()

@@ -22,8 +22,8 @@ from visfly_dist.aggregator.image_shm import ImageSegments
 from visfly_dist.protocol.cameras import CameraSpec
 
 segments = ImageSegments(sys.argv[1], (CameraSpec(name="depth", kind="depth", width=32, height=24),))
-lease = segments.offer("local-0", 1, rows=12)
-print(lease.segment.path, flush=True)
+step = segments.offer([("local-0", 1)], 12, 0)
+print(step.segment.path, flush=True)
 sys.stdin.read()
 """
 

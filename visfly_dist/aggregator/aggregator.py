@@ -41,7 +41,7 @@ from visfly_dist.aggregator.assembler import (
 )
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
-from visfly_dist.aggregator.image_shm import ImageSegments, Lease
+from visfly_dist.aggregator.image_shm import ImageSegments, StepImages
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.slots import Move, SlotTable
 from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
@@ -58,6 +58,18 @@ MAX_CACHED_PLANS = 8
 __all__ = ["Aggregator", "Observation", "StepTicket"]
 
 
+def _increasing(agents: np.ndarray) -> bool:
+    return len(agents) < 2 or bool((agents[1:] > agents[:-1]).all())
+
+
+def _observation(cameras: Sequence[CameraSpec], n: int, images: dict[str, np.ndarray] | None) -> Observation:
+    """Buffers for ``n`` rows: the step segment's ``images`` if given, else fresh arrays."""
+    obs = empty_observation(cameras, n)
+    if images is not None:
+        obs.images = images
+    return obs
+
+
 def is_unknown_scene(err: RemoteError) -> bool:
     """The worker does not hold a scene key we sent: it restarted since the scene was loaded."""
     return err.code == ErrorCode.UNKNOWN_SCENE
@@ -71,7 +83,6 @@ class _WorkerPart:
     slots: list[int]
     obs_rows: np.ndarray     # rows of ticket.obs, in reply order
     spawn_rows: np.ndarray   # rows of ticket.spawn_obs, after those
-    lease: Lease | None      # the image segment the worker was asked to write into, if any
 
 
 @dataclass
@@ -84,6 +95,7 @@ class StepTicket:
     spawn_obs: Observation
     parts: list[_WorkerPart]
     started: float
+    images: StepImages | None = None  # the segment the workers write this step's images into
     timings: BatchTimings = field(default_factory=BatchTimings)
     collected: bool = False
 
@@ -155,7 +167,7 @@ class Aggregator:
         self._spawn_generation: dict[tuple, int] = {}  # refreshes asked for, per pool (seeds them)
         self._spawn_next: dict[tuple, np.ndarray] = {}  # a refresh that arrived, used once the pool is drawn
         self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
-        self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]] = {}
+        self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]] = {}
         self._plans_revision = -1
         self._rng = np.random.default_rng(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
@@ -284,28 +296,38 @@ class Aggregator:
         spawn_agents = self._agent_index(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
         spawn_rows = self._pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents)
         self._maintain()
-        ticket = StepTicket(agents, spawn_agents, empty_observation(self.cameras, len(agents)),
-                            empty_observation(self.cameras, len(spawn_agents)), [], t_start)
         obs_plan = self._step_plan(agents)
         spawn_plan = self._plan_entries(spawn_agents)
+        workers = sorted(set(obs_plan) | set(spawn_plan))
+        step = self._step_images(workers, agents, spawn_agents)
+        ticket = StepTicket(agents, spawn_agents, _observation(self.cameras, len(agents), step and step.obs),
+                            _observation(self.cameras, len(spawn_agents), step and step.spawn), [], t_start, step)
+        no_entries = ([], [], np.zeros(0, np.int64), [], [])
         requests, parts = [], []
-        for wid in sorted(set(obs_plan) | set(spawn_plan)):
-            o_keys, o_counts, o_rows, o_slots = obs_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
-            s_keys, s_counts, s_rows, _ = spawn_plan.get(wid, ([], [], np.zeros(0, np.int64), []))
+        for wid in workers:
+            o_keys, o_counts, o_rows, o_slots, o_starts = obs_plan.get(wid, no_entries)
+            s_keys, s_counts, s_rows, _, s_starts = spawn_plan.get(wid, no_entries)
             poses_w = np.concatenate([rows[o_rows], spawn_rows[s_rows]])
             times = np.full(len(o_keys) + len(s_keys), float(sim_time)) if sim_time else None
-            lease = None if self._images is None else self._images.offer(wid, self._pool.generation(wid), len(poses_w))
+            target = None if step is None else self._images.target(step, (wid, self._pool.generation(wid)),
+                                                                   o_starts, s_starts)
             message = step_message(o_keys + s_keys, np.array(o_counts + s_counts, np.int32), poses_w,
-                                   search_radius=self.search_radius, times=times,
-                                   image_segment=None if lease is None else lease.target)
+                                   search_radius=self.search_radius, times=times, image_segment=target)
             requests.append((wid, message))
-            parts.append((o_slots, o_rows, s_rows, lease))
+            parts.append((o_slots, o_rows, s_rows))
         t0 = time.perf_counter()
         for part, pending in zip(parts, self._pool.send(requests, self.pool_config.step_timeout_s)):
             ticket.parts.append(_WorkerPart(pending, *part))
         ticket.timings.fanout_s = time.perf_counter() - t0
         ticket.timings.extra["plan_s"] = t0 - t_start
         return ticket
+
+    def _step_images(self, workers: Sequence[str], agents: np.ndarray, spawn_agents: np.ndarray) -> StepImages | None:
+        """The image segment of a step, when its rows can be laid out in observation order (agents
+        in increasing order, as the env always asks): then each entry's rows are one run."""
+        if self._images is None or not workers or not (_increasing(agents) and _increasing(spawn_agents)):
+            return None
+        return self._images.offer([(w, self._pool.generation(w)) for w in workers], len(agents), len(spawn_agents))
 
     def ready(self, ticket: StepTicket) -> bool:
         """Whether every reply of ``ticket`` is in (``collect`` will not wait)."""
@@ -331,9 +353,15 @@ class Aggregator:
         replies = self._pool.gather([p.pending for p in ticket.parts], ticket.timings)
         t0 = time.perf_counter()
         worker_timings = []
+        step, failed = ticket.images, False
         for part, reply in zip(ticket.parts, replies):
-            reply = self._segment_images(part, reply)
+            in_place = False
+            if step is not None and reply.message is not None:
+                in_place, problem = self._images.check(step, reply.worker_id, reply.message)
+                if problem:
+                    reply = Reply(reply.worker_id, failure=problem)
             if reply.message is None:
+                failed = True
                 self._handle_failure(reply, part.slots)
                 continue
             message = reply.message
@@ -343,15 +371,11 @@ class Aggregator:
                     for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
             tail = {k: (v[n_obs:] if k != "images" else {c: img[n_obs:] for c, img in v.items()})
                     for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
-            scatter_reply(ticket.obs, part.obs_rows, head, self.cameras, reply.worker_id)
+            scatter_reply(ticket.obs, part.obs_rows, head, self.cameras, reply.worker_id, in_place)
             if len(part.spawn_rows):
-                scatter_reply(ticket.spawn_obs, part.spawn_rows, tail, self.cameras, reply.worker_id)
-            if part.lease is not None and not self._images.release(part.lease):
-                ticket.obs.lost[part.obs_rows] = True
-                ticket.spawn_obs.lost[part.spawn_rows] = True
-                self._handle_failure(Reply(reply.worker_id, failure=(
-                    f"image segment {part.lease.target.name} was written over while its images were read")),
-                    part.slots)
+                scatter_reply(ticket.spawn_obs, part.spawn_rows, tail, self.cameras, reply.worker_id, in_place)
+        if step is not None:
+            self._release_images(ticket, step, failed)
         stale = np.flatnonzero(ticket.obs.lost)
         if len(stale):
             copy_rows(ticket.obs, stale, self._last, ticket.agents[stale])
@@ -364,19 +388,19 @@ class Aggregator:
                                            time.perf_counter() - ticket.started)
         return ticket.obs, ticket.spawn_obs
 
-    def _segment_images(self, part: _WorkerPart, reply: Reply) -> Reply:
-        """``reply`` with its images in its message (views of the image segment when the worker wrote
-        them there); a failure when the segment does not hold this request's images."""
-        lease = part.lease
-        if lease is None or reply.message is None:
-            if lease is not None:
-                self._images.release(lease, failed=reply.failure is not None)
-            return reply
-        views, problem = self._images.images(lease, reply.message)
-        if problem:
-            self._images.release(lease, failed=True)
-            return Reply(reply.worker_id, failure=problem)
-        return reply if views is None else Reply(reply.worker_id, message={**reply.message, "images": views})
+    def _release_images(self, ticket: StepTicket, step: StepImages, failed: bool) -> None:
+        """Done with the step's segment. After a failed request the images are copied out (the late
+        worker may still write there); rows written over after their reply was read are lost."""
+        over = self._images.release(step, failed)
+        if failed or over:
+            ticket.obs = ticket.obs.take(np.arange(len(ticket.agents)))
+            ticket.spawn_obs = ticket.spawn_obs.take(np.arange(len(ticket.spawn_agents)))
+        for part in ticket.parts:
+            if part.pending.worker_id in over:
+                ticket.obs.lost[part.obs_rows] = True
+                ticket.spawn_obs.lost[part.spawn_rows] = True
+                self._handle_failure(Reply(part.pending.worker_id, failure=(
+                    f"image segment {step.segment.name} was written over after its images were read")), part.slots)
 
     def take_switched(self) -> np.ndarray:
         """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
@@ -402,7 +426,7 @@ class Aggregator:
         for key in ("collision", "inside", "nearest", "distance"):
             getattr(last, key)[agents] = getattr(obs, key)[rows]
 
-    def _step_plan(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]:
+    def _step_plan(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]:
         """:meth:`_plan_entries` of the stepped agents, kept while the slot table is unchanged: a
         training loop steps the same agents (all, or its groups) on the same workers every time."""
         key = agents.tobytes()
@@ -416,8 +440,9 @@ class Aggregator:
             plan = self._plans[key] = self._plan_entries(agents)
         return plan
 
-    def _plan_entries(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int]]]:
-        """Per worker: scene keys, counts, the rows of ``agents`` in request order, and the slots."""
+    def _plan_entries(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]:
+        """Per worker: scene keys, counts, the rows of ``agents`` in request order, the slots, and each
+        entry's first row."""
         if len(agents) == 0:
             return {}
         slot_of = self.agent_scene[agents]
@@ -433,7 +458,7 @@ class Aggregator:
             cnts.append(count)
             parts.append(order[start:start + count])
             served.append(slot)
-        return {w: (k, c, np.concatenate(p), sl) for w, (k, c, p, sl) in out.items()}
+        return {w: (k, c, np.concatenate(p), sl, [int(rows[0]) for rows in p]) for w, (k, c, p, sl) in out.items()}
 
     def _timings(self, batch: BatchTimings, workers: list[dict], assemble_s: float, total_s: float) -> dict[str, float]:
         out = {"fanout_s": batch.fanout_s, "wait_s": batch.wait_s, "decode_s": batch.decode_s,
@@ -484,8 +509,6 @@ class Aggregator:
             reason = reply.failure or "failed"
             others = [w for w in self._pool.live_workers() if w != reply.worker_id]
             self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
-            if self._images is not None:
-                self._images.drop_worker(reply.worker_id)
         self._orphan(reply.worker_id, reason)
 
     # ----- background work -------------------------------------------------------------------
@@ -495,8 +518,6 @@ class Aggregator:
         self._pool.respawn_exited()
         live = self._pool.live_workers()
         gens = {w: self._pool.generation(w) for w in live}
-        if self._images is not None:
-            self._images.keep_only(gens)
         for s in self.table.slots:
             if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
                 why = "liveliness token gone" if s.worker not in gens else "restarted"

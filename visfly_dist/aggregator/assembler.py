@@ -3,10 +3,10 @@
 A step request to one worker carries its agents' poses as one array; its reply carries every array
 (images per camera, collision, inside, nearest, distance) with the rows in request order. The
 assembler knows, per request, which observation row each reply row belongs to, so each reply array
-costs one indexed copy (``out[rows] = reply``) from a read-only view: of the image segment the
-worker traced into (:mod:`.image_shm`, one copy of an image in all before it becomes a torch
-tensor with ``torch.from_numpy``), or of the received payload for inline images
-(:func:`visfly_dist.protocol.codec.decode`).
+costs one indexed copy (``out[rows] = reply``). Images a worker on this host traced straight into
+the step's segment (:mod:`.image_shm`) are already in place: the observation is a view of that
+segment, with no copy before it becomes a torch tensor (``torch.from_numpy``). Inline images are
+copied once from the received payload (:func:`visfly_dist.protocol.codec.decode`).
 """
 
 from __future__ import annotations
@@ -67,11 +67,14 @@ def empty_observation(cameras: Sequence[CameraSpec], n: int) -> Observation:
 
 
 def scatter_reply(out: Observation, rows: np.ndarray, reply: dict[str, Any], cameras: Sequence[CameraSpec],
-                  worker_id: str) -> None:
-    """Write a ``step_result`` whose rows belong to ``out``'s rows ``rows``; checks every shape first."""
+                  worker_id: str, images_in_place: bool = False) -> None:
+    """Write a ``step_result`` whose rows belong to ``out``'s rows ``rows``; checks every shape first.
+
+    ``images_in_place``: the worker wrote the images straight into ``out``'s (a step segment).
+    """
     n = len(rows)
     images = reply.get("images") or {}
-    expected = [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in cameras]
+    expected = [] if images_in_place else [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in cameras]
     expected += [("collision", reply.get("collision"), (n,)), ("inside", reply.get("inside"), (n,)),
                  ("nearest", reply.get("nearest"), (n, 3)), ("distance", reply.get("distance"), (n,))]
     for name, value, shape in expected:
@@ -79,7 +82,8 @@ def scatter_reply(out: Observation, rows: np.ndarray, reply: dict[str, Any], cam
             got = getattr(value, "shape", type(value).__name__)
             raise ProtocolError(f"worker {worker_id!r} sent {name} of shape {got}; expected {shape}")
     for cam in cameras:
-        out.images[cam.name][rows] = images[cam.name]
+        if not images_in_place:
+            out.images[cam.name][rows] = images[cam.name]
     for key in QUERY_FIELDS:
         getattr(out, key)[rows] = reply[key]
     out.lost[rows] = False

@@ -1,27 +1,30 @@
-"""The learner's image segments: ``/dev/shm`` files that workers on this host write their images into.
+"""The learner's image segments: ``/dev/shm`` files that workers on this host write a step's images into.
 
-Per worker (and worker generation) the learner holds a few segments (:data:`MAX_PER_WORKER`), one
-per request in flight: a request takes a free segment big enough for its rows, or a new one with
-room for the next power of two of rows (a segment that is too small is retired, never resized: a
-new file gets a new name). The step request
-names it (:class:`~visfly_dist.protocol.image_segment.SegmentTarget`); the worker proves it is on
-this host by finding the nonce there, writes the images, then the request's sequence number.
+A step takes one segment for all its requests: each camera's block holds the observation's rows in
+observation order (rows ``[0, k)``) and then the spawn rows. Each worker writes its agents' rows
+where the request says (``entry_rows``) and its own sequence number in its own header slot
+(``seq_offset``). The observation the learner hands out is a view of the segment: no copy between
+the renderer's output and the torch observation. A segment is offered again only when nothing
+refers to its images any more (every array handed out is a view of one ``uint8`` array of the
+mapping, whose reference count says whether anyone still holds one), so an observation a caller
+keeps is never written over; a caller that keeps many makes new segments, as fresh arrays would.
 
 Invariants:
-- A file exists only from its creation until the worker's first answer to a request naming it:
-  then it is unlinked, and both sides keep their mappings. Nothing is left in ``/dev/shm`` even if
-  either process is SIGKILLed later. Retired segments, dropped workers and :meth:`close` unlink
-  too. Only a learner killed while a request is unanswered leaves files behind: a new
+- A file exists only from its creation until the end of the first step that used it: then it is
+  unlinked, and every side keeps its mapping. Nothing is left in ``/dev/shm`` even if any process
+  is SIGKILLed later. Only a learner killed while a step is unanswered leaves files behind: a new
   :class:`ImageSegments` removes every ``visfly-img-*`` file of this user that no live process
   holds open or maps (:func:`remove_orphaned_segments`), so another live learner's files stay.
-- A segment is busy from the request that names it until the reply was read (:meth:`release`). A
-  request that failed (no reply, timeout) retires its segment: the worker may still write into
-  it late, so it is never handed to another request.
-- Each request has its own sequence number; the images are read only if the header holds that
-  number before and after the copy (the worker writes 0 while it writes images), so a late write
-  can never pass for a later request's images.
+  An unlinked segment is offered only to steps whose workers all mapped it before.
+- A segment is busy from the step that names it until the step was collected (:meth:`release`).
+  A step with a failed request retires its segment: the worker may still write into it late, so
+  the caller copies the step's images out and nobody is offered the segment again.
+- Each request has its own sequence number; images count as written only if the worker's header
+  slot holds that number when the reply is read and when the step is released (the worker writes
+  0 while it writes), so a late write can never pass for a later request's images.
 - A worker that cannot open a fresh segment, or finds another nonce, replies inline and is not
   offered a segment again (for that generation): it is on another host or sees another /dev/shm.
+  Its rows are copied into the segment, so the observation is still one array.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import mmap
 import os
 import secrets
 import stat
+import sys
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -38,13 +42,16 @@ import numpy as np
 
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
-    NAME_PREFIX, NONCE_BYTES, SEQ, SEQ_OFFSET, SHM_DIR, SegmentTarget, block_view, layout,
+    NAME_PREFIX, NONCE_BYTES, SEQ, SEQ_OFFSET, SHM_DIR, SegmentTarget, align, block_bytes,
 )
 from visfly_dist.protocol.shm import files_in_use
 
 log = logging.getLogger(__name__)
 
-MAX_PER_WORKER = 4
+MAX_SEGMENTS = 6
+"""Segments kept per run: the steps in flight, and the observations callers still hold."""
+STEP_HEADER_BYTES = 4096
+"""Header of a step segment: the nonce, then one sequence number per worker of the step (up to 510)."""
 NAME_PART_CHARS = 48
 
 
@@ -87,23 +94,47 @@ def _name_part(value: str) -> str:
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in value)[:NAME_PART_CHARS]
 
 
+def _room(rows: int) -> int:
+    """Rows a new segment makes room for: the next power of two (spawn rows vary step to step)."""
+    return 1 << max(rows - 1, 0).bit_length()
+
+
 @dataclass(eq=False)
 class Segment:
-    """One ``/dev/shm`` file of one worker, mapped here."""
+    """One ``/dev/shm`` file, mapped here: per camera a block of ``obs_rows`` then ``spawn_rows`` images."""
 
-    worker_id: str
-    generation: int
     path: str
     nonce: bytes
     mm: mmap.mmap
+    obs_rows: int
+    spawn_rows: int
+    blocks: dict[str, int]
+    whole: np.ndarray  # uint8 view of the mapping; every array handed out is a view of it
+    baseline: int = 0  # reference count of ``whole`` when nothing outside refers to it
+    users: set[tuple[str, int]] = field(default_factory=set)  # (worker, generation) that mapped it
     linked: bool = True
     busy: bool = False
-    confirmed: bool = False  # the worker wrote images into it at least once
     retired: bool = False
 
     @property
     def name(self) -> str:
         return os.path.basename(self.path)
+
+    def held(self) -> bool:
+        """Whether an array handed out (an observation, a torch tensor over it) is still alive."""
+        return sys.getrefcount(self.whole) > self.baseline
+
+    def images(self, cameras: Sequence[CameraSpec], first: int, rows: int) -> dict[str, np.ndarray]:
+        """Writable ``(rows, C, H, W)`` views of each camera's block from row ``first``."""
+        out = {}
+        for cam in cameras:
+            row_bytes = block_bytes(cam, 1)
+            start = self.blocks[cam.name] + first * row_bytes
+            out[cam.name] = self.whole[start:start + rows * row_bytes].view(cam.dtype).reshape(rows, *cam.shape)
+        return out
+
+    def seq(self, offset: int) -> int:
+        return SEQ.unpack_from(self.mm, offset)[0]
 
     def unlink(self) -> None:
         if self.linked:
@@ -114,21 +145,26 @@ class Segment:
                 pass
 
     def close(self) -> None:
+        """Unlink, and unmap unless a view is still alive (the mapping then goes with the last view)."""
         self.unlink()
+        self.whole = np.zeros(0, np.uint8)
         try:
             self.mm.close()
-        except BufferError:  # a view is still alive (a caller's observation never is: it is a copy)
+        except BufferError:
             pass
 
 
 @dataclass(eq=False)
-class Lease:
-    """A segment taken by one request: its target and its rows."""
+class StepImages:
+    """The segment of one step: the observation's and the spawn rows' images (views), and the
+    target of each worker asked to write there."""
 
     segment: Segment
-    target: SegmentTarget
-    rows: int
-    read: bool = field(default=False)
+    obs: dict[str, np.ndarray]
+    spawn: dict[str, np.ndarray]
+    fresh: bool  # the file was still linked when the step was sent (a worker that cannot open it is elsewhere)
+    targets: dict[str, tuple[int, SegmentTarget]] = field(default_factory=dict)  # worker -> (generation, target)
+    refused: bool = False  # a worker could not use it: it is not offered again
 
 
 class ImageSegments:
@@ -142,41 +178,98 @@ class ImageSegments:
     def __init__(self, run_id: str, cameras: Sequence[CameraSpec]) -> None:
         self.run_id = run_id
         self.cameras = tuple(cameras)
-        self._segments: dict[str, list[Segment]] = {}
+        self._segments: list[Segment] = []
         self._refused: set[tuple[str, int]] = set()
         self._seq = 0
         remove_orphaned_segments()
 
-    def offer(self, worker_id: str, generation: int, rows: int) -> Lease | None:
-        """A segment for a request of ``rows`` image rows to this worker, or None (send images inline)."""
-        if rows == 0 or (worker_id, generation) in self._refused:
+    def offer(self, workers: Sequence[tuple[str, int]], obs_rows: int, spawn_rows: int) -> StepImages | None:
+        """A segment for a step of ``obs_rows`` observation rows and ``spawn_rows`` spawn rows sent to
+        ``workers`` (``(worker, generation)`` pairs), or None (every image travels inline)."""
+        asked = {w for w in workers if w not in self._refused}
+        if not asked or obs_rows + spawn_rows == 0:
             return None
-        mine = self._segments.setdefault(worker_id, [])
-        for seg in [s for s in mine if s.generation != generation]:
-            self._retire(seg)
-        blocks, need = layout(self.cameras, rows)
-        free = [s for s in mine if not s.busy and not s.retired]
-        seg = next((s for s in free if len(s.mm) >= need), None)
+        seg = next((s for s in self._segments if self._fits(s, asked, obs_rows, spawn_rows)), None)
         if seg is None:
-            for small in free:
-                self._retire(small)
-            if len([s for s in mine if not s.retired]) >= MAX_PER_WORKER:
-                return None
-            try:  # room for the next power of two of rows: spawn rows vary step to step
-                seg = self._create(worker_id, generation, layout(self.cameras, 1 << (rows - 1).bit_length())[1])
+            for old in [s for s in self._segments if not s.busy and not s.held()]:
+                self._retire(old)  # too small, or unlinked before these workers mapped it
+            while len(self._segments) >= MAX_SEGMENTS:
+                self._retire(next(s for s in self._segments if not s.busy) if any(not s.busy for s in self._segments)
+                             else self._segments[0])
+            try:
+                seg = self._create(_room(obs_rows), _room(spawn_rows))
             except OSError as exc:  # no /dev/shm, or no room in it: images travel inline
-                log.warning("cannot create an image segment of %d bytes in %s (%s); images travel inline",
-                            need, SHM_DIR, exc)
-                self._refused.add((worker_id, generation))
+                log.warning("cannot create an image segment in %s (%s); images travel inline", SHM_DIR, exc)
+                self._refused |= asked
                 return None
-            mine.append(seg)
+            self._segments.append(seg)
         seg.busy = True
-        self._seq += 1
-        return Lease(seg, SegmentTarget(seg.name, seg.nonce, len(seg.mm), self._seq, blocks), rows)
+        return StepImages(seg, seg.images(self.cameras, 0, obs_rows), seg.images(self.cameras, seg.obs_rows, spawn_rows),
+                          fresh=seg.linked)
 
-    def _create(self, worker_id: str, generation: int, size: int) -> Segment:
+    def target(self, step: StepImages, worker: tuple[str, int], obs_starts: Sequence[int],
+               spawn_starts: Sequence[int]) -> SegmentTarget | None:
+        """The ``image_segment`` of ``worker``'s request in ``step``: its entries' first rows (observation
+        entries, then spawn entries), its own header slot; None if it gets its images inline."""
+        lane = len(step.targets)
+        seq_offset = SEQ_OFFSET + SEQ.size * lane
+        if worker in self._refused or seq_offset + SEQ.size > STEP_HEADER_BYTES:
+            return None
+        seg = step.segment
+        self._seq += 1
+        rows = tuple(int(r) for r in obs_starts) + tuple(seg.obs_rows + int(r) for r in spawn_starts)
+        target = SegmentTarget(seg.name, seg.nonce, len(seg.mm), self._seq, seg.blocks, seq_offset, rows)
+        SEQ.pack_into(seg.mm, seq_offset, 0)
+        step.targets[worker[0]] = (worker[1], target)
+        return target
+
+    def check(self, step: StepImages, worker_id: str, message: dict[str, Any]) -> tuple[bool, str]:
+        """Whether ``worker_id``'s reply left its images in ``step``'s segment, and a problem (``""``
+        if none) that fails the reply."""
+        if worker_id not in step.targets:
+            return False, ""
+        generation, target = step.targets[worker_id]
+        seg = step.segment
+        if message.get("images_in_segment") is True:
+            if seg.seq(target.seq_offset) != target.seq:
+                return False, f"image segment {seg.name} does not hold the images of request {target.seq}"
+            seg.users.add((worker_id, generation))
+            return True, ""
+        if "segment_refused" in message:
+            step.refused = True
+            if step.fresh:
+                log.info("worker %s replies inline from now on: %s", worker_id, message["segment_refused"])
+                self._refused.add((worker_id, generation))
+        return False, ""
+
+    def release(self, step: StepImages, failed: bool = False) -> list[str]:
+        """Done with ``step`` (every reply read). ``failed``: a request got no usable reply (the
+        segment is retired; the caller copies the images out).
+
+        Returns:
+            Workers whose images were written over since their reply was read (a late write):
+            their rows are not to be trusted.
+        """
+        seg = step.segment
+        seg.unlink()
+        seg.busy = False
+        over = [w for w, (gen, t) in step.targets.items()
+                if (w, gen) in seg.users and seg.seq(t.seq_offset) != t.seq]
+        if failed or over or step.refused or seg.retired:
+            self._retire(seg)
+        return over
+
+    def _fits(self, seg: Segment, workers: set[tuple[str, int]], obs_rows: int, spawn_rows: int) -> bool:
+        return (not seg.busy and not seg.retired and seg.obs_rows >= obs_rows and seg.spawn_rows >= spawn_rows
+                and (seg.linked or workers <= seg.users) and not seg.held())
+
+    def _create(self, obs_rows: int, spawn_rows: int) -> Segment:
+        blocks, size = {}, STEP_HEADER_BYTES
+        for cam in self.cameras:
+            blocks[cam.name] = size
+            size = align(size + block_bytes(cam, obs_rows + spawn_rows))
         nonce = secrets.token_bytes(NONCE_BYTES)
-        name = f"{NAME_PREFIX}{_name_part(self.run_id)}-{_name_part(worker_id)}-{nonce[:8].hex()}"
+        name = f"{NAME_PREFIX}{_name_part(self.run_id)}-{nonce[:8].hex()}"
         path = os.path.join(SHM_DIR, name)
         fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
         try:
@@ -188,79 +281,25 @@ class ImageSegments:
         finally:
             os.close(fd)
         mm[:NONCE_BYTES] = nonce
-        return Segment(worker_id, generation, path, nonce, mm)
-
-    def images(self, lease: Lease, message: dict[str, Any]) -> tuple[dict[str, np.ndarray] | None, str]:
-        """The answered request's images: read-only views of the segment when the worker wrote them
-        there, None when it replied inline; and a problem (``""`` if none) that fails the reply.
-
-        Unlinks the segment's file (the worker has answered). A refused fresh segment stops offers
-        to that worker; a refused segment it used before (it restarted) is retired.
-        """
-        seg = lease.segment
-        seg.unlink()
-        if message.get("images_in_segment") is True:
-            if SEQ.unpack_from(seg.mm, SEQ_OFFSET)[0] != lease.target.seq:
-                return None, f"image segment {seg.name} does not hold the images of request {lease.target.seq}"
-            seg.confirmed = lease.read = True
-            views = {c.name: block_view(seg.mm, lease.target.blocks[c.name], c, lease.rows) for c in self.cameras}
-            for view in views.values():
-                view.flags.writeable = False
-            return views, ""
-        if "segment_refused" in message:
-            if seg.confirmed:
-                self._retire(seg)
-            else:
-                log.info("worker %s replies inline from now on: %s", seg.worker_id, message["segment_refused"])
-                self._refused.add((seg.worker_id, seg.generation))
-                self.drop_worker(seg.worker_id)
-        return None, ""
-
-    def release(self, lease: Lease, failed: bool = False) -> bool:
-        """Done with ``lease``'s request. ``failed``: it got no usable reply (the segment is retired).
-
-        Returns:
-            False if images were read and the segment no longer holds this request's (written over
-            during the copy): the copied rows are not to be trusted.
-        """
-        seg = lease.segment
-        intact = not lease.read or SEQ.unpack_from(seg.mm, SEQ_OFFSET)[0] == lease.target.seq
-        seg.busy = False
-        if failed or not intact or seg.retired:
-            self._retire(seg)
-        return intact
+        seg = Segment(path, nonce, mm, obs_rows, spawn_rows, blocks, np.frombuffer(mm, np.uint8))
+        seg.baseline = sys.getrefcount(seg.whole)
+        return seg
 
     def _retire(self, seg: Segment) -> None:
-        """Unlink a segment and never offer it again; unmapped once no request holds it."""
+        """Unlink a segment and never offer it again; unmapped once no step and no caller holds it."""
         seg.retired = True
         seg.unlink()
+        if seg in self._segments:
+            self._segments.remove(seg)
         if not seg.busy:
             seg.close()
-            mine = self._segments.get(seg.worker_id, [])
-            if seg in mine:
-                mine.remove(seg)
-
-    def drop_worker(self, worker_id: str) -> None:
-        """Retire every segment of a worker that failed or left (a later generation gets fresh ones)."""
-        for seg in list(self._segments.get(worker_id, [])):
-            self._retire(seg)
-
-    def keep_only(self, live: dict[str, int]) -> None:
-        """Retire the segments of workers that are gone or restarted (``live``: worker -> generation)."""
-        for worker_id, segs in list(self._segments.items()):
-            for seg in list(segs):
-                if live.get(worker_id) != seg.generation:
-                    self._retire(seg)
-            if not segs:
-                del self._segments[worker_id]
 
     def files(self) -> list[str]:
         """Paths of the segment files still on disk (tests, diagnostics)."""
-        return [s.path for segs in self._segments.values() for s in segs if s.linked]
+        return [s.path for s in self._segments if s.linked]
 
     def close(self) -> None:
         """Unlink and unmap every segment (idempotent)."""
-        for segs in self._segments.values():
-            for seg in segs:
-                seg.close()
+        for seg in self._segments:
+            seg.close()
         self._segments.clear()
