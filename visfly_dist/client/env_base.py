@@ -19,6 +19,7 @@ reset by masked selection and their fresh observation replaces the terminal one,
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
@@ -404,10 +405,13 @@ class DroneEnvBase(VecEnv):
         with torch.set_grad_enabled(self.config.requires_grad):
             result = self._finish(flight)
         ids = flight.group.nonzero().squeeze(1)
-        pick = {k: v[ids] for k, v in result.info.items() if k != "terminal_observation"}
-        pick["terminal_observation"] = {k: v[ids] for k, v in result.info["terminal_observation"].items()}
-        return StepResult({k: v[ids] for k, v in result.observation.items()}, result.reward[ids],
-                          result.terminated[ids], result.truncated[ids], pick), ids
+        def rows(v: torch.Tensor) -> torch.Tensor:
+            return v.index_select(0, ids)  # images: several times faster than v[ids]
+
+        pick = {k: rows(v) for k, v in result.info.items() if k != "terminal_observation"}
+        pick["terminal_observation"] = {k: rows(v) for k, v in result.info["terminal_observation"].items()}
+        return StepResult({k: rows(v) for k, v in result.observation.items()}, rows(result.reward),
+                          rows(result.terminated), rows(result.truncated), pick), ids
 
     def _take_swapped(self, members: np.ndarray) -> torch.Tensor | None:
         """``(N,)`` bool: agents of ``members`` whose scene was swapped (None if none); they start
@@ -477,13 +481,18 @@ class DroneEnvBase(VecEnv):
             obs = self.aggregator.observe(self._start_poses(missing), agents=missing, sim_time=self.sim_time)
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
+        before = self.frame
         self.frame = rows if observation is None else self.frame.scatter(idx, rows)
         self._draw_next_starts(idx)
         fresh_obs = self._observation()
         if observation is None:
             return fresh_obs
-        m = {k: mask.reshape((-1,) + (1,) * (v.dim() - 1)) for k, v in fresh_obs.items()}
-        return {k: torch.where(m[k], v, observation[k]) for k, v in fresh_obs.items()}
+        # An entry that is the frame's image before and after the reset already holds the old rows
+        # outside ``mask`` (scatter wrote the new rows into a copy): no second select of every image.
+        passed = {k for k, v in fresh_obs.items()
+                  if v is self.frame.images.get(k) and observation[k] is before.images.get(k)}
+        return {k: v if k in passed else torch.where(mask.reshape((-1,) + (1,) * (v.dim() - 1)), v, observation[k])
+                for k, v in fresh_obs.items()}
 
     def _agent_bounds(self) -> torch.Tensor:
         return torch.as_tensor(np.asarray(self.aggregator.agent_bounds(), dtype=np.float32), device=self.device)
@@ -532,7 +541,8 @@ class DroneEnvBase(VecEnv):
 
     def to_sb3(self, result: StepResult) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """A step's result as SB3's ``VecEnv.step`` returns it: numpy observation, rewards, dones and
-        one info dict per row (every agent after :meth:`step_tensor`, a group's rows after :meth:`recv`)."""
+        one info dict per row (every agent after :meth:`step_tensor`, a group's rows after :meth:`recv`).
+        A done row's ``terminal_observation`` holds copies of its own rows, nothing else."""
         obs, reward, terminated, truncated, info = result
         return (self.to_numpy(obs), reward.detach().cpu().numpy().astype(np.float32),
                 (terminated | truncated).cpu().numpy(), self._sb3_infos(terminated, truncated, info))
@@ -543,14 +553,13 @@ class DroneEnvBase(VecEnv):
         flags = {k: info[k].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
         cut = truncated.cpu().numpy()
         done = (terminated | truncated).cpu().numpy()
-        infos = [dict(_QUIET_INFO) for _ in range(len(done))]  # most rows: every flag False
+        infos = list(map(dict, itertools.repeat(_QUIET_INFO, len(done))))  # most rows: every flag False
         for i in np.flatnonzero(flags["success"] | flags["collision"] | flags["out_of_bounds"] | cut).tolist():
             infos[i].update({"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
                              "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(cut[i])})
         if done.any():
             rows = np.flatnonzero(done)
-            at = torch.as_tensor(rows, device=terminated.device)
-            terminal = self.to_numpy({k: v[at] for k, v in info["terminal_observation"].items()})
+            terminal = {k: v[rows] for k, v in self.to_numpy(info["terminal_observation"]).items()}  # done rows only
             ret = info["episode_return"].cpu().numpy()
             length = info["episode_length"].cpu().numpy()
             elapsed = round(time.time() - self._t0, 6)
