@@ -88,6 +88,23 @@ def test_success_terminates_only_that_agent(env):
     assert not done.any()
 
 
+def test_terminal_observation_copies_only_the_done_rows(env):
+    env.reset()
+    env.step(hover(env))
+    env.force_success[2] = True
+    try:
+        obs, _, _, infos = env.step(hover(env))
+    finally:
+        env.force_success[:] = False
+    term = infos[2]["terminal_observation"]
+    for key, row in term.items():
+        assert row.base is None or row.base.shape[0] == 1, f"{key}: a view into every agent's rows"
+        assert not np.shares_memory(row, obs[key])
+    before = term["step"].copy()
+    env.step(hover(env))  # the next step leaves the kept row alone
+    assert np.array_equal(term["step"], before) and before[0] == 2
+
+
 def test_step_tensor_keeps_terminated_and_truncated_apart(env):
     env.reset()
     for _ in range(4):

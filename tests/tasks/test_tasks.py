@@ -9,6 +9,7 @@ from visfly_dist.errors import ConfigError
 from visfly_dist.tasks import TASKS
 from visfly_dist.tasks.gap_crossing import GapCrossingConfig
 from visfly_dist.tasks.landing import LandingConfig, pad_in_image
+from visfly_dist.tasks.common import forward_axis, obstacle_terms, target_observation
 from tests.tasks.helpers import hover, place
 
 
@@ -112,3 +113,26 @@ def test_racing_counts_gates_in_order(envs):
     assert obs["progress"][:, 0].tolist() == [0.25, 0.0]
     assert reward[0] > 0.5 and reward[1] < 0.5
     np.testing.assert_allclose(obs["state"][0, :3], np.subtract(gates[0], gates[1]), atol=0.05)
+
+
+def test_navigation_shared_geometry_matches_the_formulas_across_resets(envs):
+    """The hooks share one goal geometry per state: it must follow steps, resets and goal changes."""
+    env = envs("navigation")
+    env.reset()
+    rng = np.random.default_rng(3)
+    for step in range(6):
+        env.step(rng.uniform(-0.3, 0.3, (env.num_envs, 4)).astype(np.float32) + hover(env))
+        if step == 2:
+            env.goal = env.goal + torch.tensor([0.0, 1.0, 0.0])  # a new goal object: the cache must follow it
+        if step == 3:
+            env.reset_some(np.array([True, False]))
+        s, cfg = env.state, env.config
+        distance = (s.pos - env.goal).norm(dim=1)
+        torch.testing.assert_close(env.get_observation()["target"], target_observation(s.pos, s.quat, env.goal))
+        assert torch.equal(env.get_success(), distance < cfg.success_radius)
+        proximity, approach = obstacle_terms(s.pos, s.vel, env.frame.nearest, env.frame.distance, cfg.search_radius)
+        heading = (forward_axis(s.quat) * (env.goal - s.pos) / distance[:, None]).sum(dim=1)
+        expected = (-0.002 * s.vel.norm(dim=1) - 0.002 * s.omega.norm(dim=1) - 0.01 * proximity
+                    + 0.05 * (env._prev_distance - distance) / cfg.ctrl_dt + 0.01 * heading - 0.05 * approach
+                    + cfg.success_bonus * env.success.float() - cfg.fail_penalty * env.failure.float())
+        torch.testing.assert_close(env.get_reward(), expected)

@@ -19,6 +19,7 @@ reset by masked selection and their fresh observation replaces the terminal one,
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
@@ -39,6 +40,9 @@ from visfly_dist.protocol.cameras import CameraSpec
 
 PROBE_CAMERA = CameraSpec(name="_probe", kind="depth", width=1, height=1)
 """Handed to the aggregator when a task has no camera (it needs one); its image is dropped."""
+
+_QUIET_INFO = {"is_success": False, "collision": False, "out_of_bounds": False, "TimeLimit.truncated": False}
+"""The SB3 info of a row with no flag set (copied per row and step: SB3 wants fresh dicts)."""
 
 STATE_DIM = 13
 """``state_vector``: position (relative to an origin), velocity, quaternion wxyz, body rates."""
@@ -67,7 +71,9 @@ class _InFlight:
 
     ticket: Any
     group: torch.Tensor
+    members: np.ndarray
     held: torch.Tensor
+    full: bool
     spawn_agents: np.ndarray
     started: float
     physics_s: float
@@ -156,14 +162,17 @@ class DroneEnvBase(VecEnv):
         self._next_pos = torch.zeros(n, 3, device=self.device)
         self._prepared = np.zeros(n, dtype=bool)
         self._prepared_obs = empty_observation(self.aggregator.cameras, n)
-        self._switched = torch.zeros(n, dtype=torch.bool, device=self.device)  # scene swapped, not yet reported
+        self._switched = np.zeros(n, dtype=bool)  # scene swapped, not yet reported
         self._in_flight: list[_InFlight] = []
         self.step_mask = torch.ones(n, dtype=torch.bool, device=self.device)
         self.agents_per_scene = config.agents_per_scene
         self._pending_actions: torch.Tensor | None = None
         self._t0 = time.time()
         self.sim_time = 0.0   # s: where the moving obstacles are for the group being stepped or taken in
-        self._steps_sent = torch.zeros(n, dtype=torch.long, device=self.device)  # per agent, since the last reseed
+        self._steps_sent = np.zeros(n, dtype=np.int64)  # per agent, since the last reseed
+        self._everyone = torch.ones(n, dtype=torch.bool, device=self.device)  # read only: the group of a plain step
+        self._no_one = torch.zeros(n, dtype=torch.bool, device=self.device)  # read only: nobody held
+        self._oob: tuple[QuadState, torch.Tensor, torch.Tensor] | None = None  # out_of_bounds of one state
 
     # ----- task hooks ---------------------------------------------------------------------------
 
@@ -240,8 +249,11 @@ class DroneEnvBase(VecEnv):
 
     def out_of_bounds(self) -> torch.Tensor:
         """``(N,)`` bool: the agent left its scene's flight box."""
-        pos = self.state.pos.detach()
-        return ((pos < self.bounds[:, 0]) | (pos > self.bounds[:, 1])).any(dim=1)
+        state, bounds = self.state, self.bounds
+        if self._oob is None or self._oob[0] is not state or self._oob[1] is not bounds:
+            pos = state.pos.detach()
+            self._oob = (state, bounds, ((pos < bounds[:, 0]) | (pos > bounds[:, 1])).any(dim=1))
+        return self._oob[2]
 
     def scene_metadata(self, agent: int) -> dict[str, Any]:
         """Metadata of the scene agent ``agent`` flies in (goal regions and the like)."""
@@ -265,8 +277,7 @@ class DroneEnvBase(VecEnv):
             return self._step(actions, hold)
 
     def _step(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
-        everyone = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
-        return self._finish(self._send(self._actions(actions, self.num_envs), everyone, hold))
+        return self._finish(self._send(self._actions(actions, self.num_envs), self._everyone, hold))
 
     def _actions(self, actions: torch.Tensor | np.ndarray, k: int) -> torch.Tensor:
         actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
@@ -277,24 +288,24 @@ class DroneEnvBase(VecEnv):
     def _send(self, actions: torch.Tensor, group: torch.Tensor, hold: torch.Tensor | None) -> _InFlight:
         """Advance the agents of ``group`` (``(N,)`` bool) and put their observation on the wire."""
         t0 = time.perf_counter()
-        held = torch.zeros_like(group) if hold is None else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
-        moving = group & ~held
-        stepped = self.quad.step(self.state, actions)
-        self.state = stepped if bool(moving.all()) else QuadState.where(moving, stepped, self.state)
-        self.actions = actions if bool(group.all()) else torch.where(group[:, None], actions, self.actions)
-        t1 = time.perf_counter()
         members = group.cpu().numpy()
         agents = np.flatnonzero(members)
+        held = self._no_one if hold is None else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
+        full = len(agents) == self.num_envs and hold is None  # every agent moves: no masking needed
+        stepped = self.quad.step(self.state, actions)
+        self.state = stepped if full or bool((group & ~held).all()) else QuadState.where(group & ~held, stepped, self.state)
+        self.actions = actions if len(agents) == self.num_envs else torch.where(group[:, None], actions, self.actions)
+        t1 = time.perf_counter()
         spawn_agents = np.flatnonzero(~self._prepared & members)
         poses = self.state.pose().detach().cpu().numpy()
         # groups stepped in turn share one clock: a group's k-th step happens at k * ctrl_dt
-        self._steps_sent = torch.where(group, self._steps_sent + 1, self._steps_sent)
+        self._steps_sent[agents] += 1
         sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
         self.sim_time = sim_time
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
                                         sim_time=sim_time)
-        return _InFlight(ticket, group, held, spawn_agents, t0, t1 - t0, sim_time)
+        return _InFlight(ticket, group, members, held, full, spawn_agents, t0, t1 - t0, sim_time)
 
     def _finish(self, flight: _InFlight) -> StepResult:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
@@ -310,34 +321,36 @@ class DroneEnvBase(VecEnv):
         everyone = len(flight.ticket.agents) == self.num_envs
         self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows)
         t1 = time.perf_counter()
-        group, held = flight.group, flight.held
-        live = group & ~held
+        group, full = flight.group, flight.full
+        # with every agent moving (a plain step) the group and hold masks select everything: skip them
+        live = group if full else group & ~flight.held
         self.step_mask = live
-        self.episode_step = self.episode_step + live.long()
-        lost = self.frame.lost & group
-        self.success = self.get_success() & ~lost & live
-        self.failure = self.get_failure() & ~lost & ~self.success & live
+        self.episode_step = self.episode_step + 1 if full else self.episode_step + live.long()
+        lost = self.frame.lost if full else self.frame.lost & group
+        success = self.get_success() & ~lost
+        self.success = success if full else success & live
+        failure = self.get_failure() & ~lost & ~self.success
+        self.failure = failure if full else failure & live
         reward = self.get_reward()
-        if not bool(live.all()):
+        if not full and not bool(live.all()):
             reward = torch.where(live, reward, torch.zeros_like(reward))
         self.episode_return = self.episode_return + reward.detach()
         observation = self._observation()
         self.update_task_state()
 
         terminated = self.success | self.failure
-        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated & live
-        terminated, truncated = self.expand_resets(terminated, truncated)
-        self._switched |= torch.as_tensor(self.aggregator.take_switched(), device=self.device)
-        swapped = self._switched & group
-        if bool(swapped.any()):
-            self._switched &= ~group
-            self.bounds = self._agent_bounds()
-            self._prepared &= ~swapped.cpu().numpy()  # their next start lies in the new scene
-            self._draw_next_starts(swapped.nonzero().squeeze(1))
-        swapped = swapped & ~terminated
-        truncated = truncated | swapped
+        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
+        terminated, truncated = self.expand_resets(terminated, truncated if full else truncated & live)
+        swapped = self._take_swapped(flight.members)
+        if swapped is None:
+            swapped = torch.zeros_like(terminated)
+        else:
+            swapped = swapped & ~terminated
+            truncated = truncated | swapped
+        collision, out_of_bounds = self.frame.collision, self.out_of_bounds()
         info = {"terminal_observation": observation, "success": self.success, "lost": lost,
-                "collision": self.frame.collision & group, "out_of_bounds": self.out_of_bounds() & group,
+                "collision": collision if full else collision & group,
+                "out_of_bounds": out_of_bounds if full else out_of_bounds & group,
                 "swapped": swapped, "episode_return": self.episode_return,
                 "episode_length": self.episode_step}
         done = terminated | truncated
@@ -392,10 +405,27 @@ class DroneEnvBase(VecEnv):
         with torch.set_grad_enabled(self.config.requires_grad):
             result = self._finish(flight)
         ids = flight.group.nonzero().squeeze(1)
-        pick = {k: v[ids] for k, v in result.info.items() if k != "terminal_observation"}
-        pick["terminal_observation"] = {k: v[ids] for k, v in result.info["terminal_observation"].items()}
-        return StepResult({k: v[ids] for k, v in result.observation.items()}, result.reward[ids],
-                          result.terminated[ids], result.truncated[ids], pick), ids
+        def rows(v: torch.Tensor) -> torch.Tensor:
+            return v.index_select(0, ids)  # images: several times faster than v[ids]
+
+        pick = {k: rows(v) for k, v in result.info.items() if k != "terminal_observation"}
+        pick["terminal_observation"] = {k: rows(v) for k, v in result.info["terminal_observation"].items()}
+        return StepResult({k: rows(v) for k, v in result.observation.items()}, rows(result.reward),
+                          rows(result.terminated), rows(result.truncated), pick), ids
+
+    def _take_swapped(self, members: np.ndarray) -> torch.Tensor | None:
+        """``(N,)`` bool: agents of ``members`` whose scene was swapped (None if none); they start
+        their next episode in the new scene."""
+        self._switched |= self.aggregator.take_switched()
+        swapped = self._switched & members
+        if not swapped.any():
+            return None
+        self._switched &= ~members
+        self.bounds = self._agent_bounds()
+        self._prepared &= ~swapped  # their next start lies in the new scene
+        swapped = torch.as_tensor(swapped, device=self.device)
+        self._draw_next_starts(swapped.nonzero().squeeze(1))
+        return swapped
 
     def expand_resets(self, terminated: torch.Tensor, truncated: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Hook: end further episodes because of these (teams end together in multi-agent tasks)."""
@@ -424,6 +454,8 @@ class DroneEnvBase(VecEnv):
         """``(k, 7)`` poses of the agents' next starts: at ``_next_pos``, level and at rest, as
         ``Quadrotor.initial_state`` puts them."""
         poses = np.zeros((len(agents), 7), dtype=np.float32)
+        if len(agents) == 0:
+            return poses
         poses[:, :3] = self._next_pos[torch.as_tensor(agents, dtype=torch.long)].cpu().numpy()
         poses[:, 3] = 1.0
         return poses
@@ -449,13 +481,18 @@ class DroneEnvBase(VecEnv):
             obs = self.aggregator.observe(self._start_poses(missing), agents=missing, sim_time=self.sim_time)
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
+        before = self.frame
         self.frame = rows if observation is None else self.frame.scatter(idx, rows)
         self._draw_next_starts(idx)
         fresh_obs = self._observation()
         if observation is None:
             return fresh_obs
-        m = {k: mask.reshape((-1,) + (1,) * (v.dim() - 1)) for k, v in fresh_obs.items()}
-        return {k: torch.where(m[k], v, observation[k]) for k, v in fresh_obs.items()}
+        # An entry that is the frame's image before and after the reset already holds the old rows
+        # outside ``mask`` (scatter wrote the new rows into a copy): no second select of every image.
+        passed = {k for k, v in fresh_obs.items()
+                  if v is self.frame.images.get(k) and observation[k] is before.images.get(k)}
+        return {k: v if k in passed else torch.where(mask.reshape((-1,) + (1,) * (v.dim() - 1)), v, observation[k])
+                for k, v in fresh_obs.items()}
 
     def _agent_bounds(self) -> torch.Tensor:
         return torch.as_tensor(np.asarray(self.aggregator.agent_bounds(), dtype=np.float32), device=self.device)
@@ -492,7 +529,7 @@ class DroneEnvBase(VecEnv):
         self.generator.manual_seed(seed)
         self.aggregator.reseed(seed)
         self.sim_time = 0.0   # the same seed starts the moving obstacles from the same places
-        self._steps_sent.zero_()
+        self._steps_sent[:] = 0
 
     def step_async(self, actions: np.ndarray) -> None:
         self._pending_actions = torch.as_tensor(np.asarray(actions), dtype=torch.float32, device=self.device)
@@ -504,25 +541,30 @@ class DroneEnvBase(VecEnv):
 
     def to_sb3(self, result: StepResult) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, list[dict[str, Any]]]:
         """A step's result as SB3's ``VecEnv.step`` returns it: numpy observation, rewards, dones and
-        one info dict per row (every agent after :meth:`step_tensor`, a group's rows after :meth:`recv`)."""
+        one info dict per row (every agent after :meth:`step_tensor`, a group's rows after :meth:`recv`).
+        A done row's ``terminal_observation`` holds copies of its own rows, nothing else."""
         obs, reward, terminated, truncated, info = result
         return (self.to_numpy(obs), reward.detach().cpu().numpy().astype(np.float32),
                 (terminated | truncated).cpu().numpy(), self._sb3_infos(terminated, truncated, info))
 
     def _sb3_infos(self, terminated: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> list[dict[str, Any]]:
+        """One fresh info dict per row; a done row also gets its terminal observation (a copy of
+        its own rows only) and its episode's return, length and end flags."""
         flags = {k: info[k].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
+        cut = truncated.cpu().numpy()
         done = (terminated | truncated).cpu().numpy()
-        columns = zip(flags["success"].tolist(), flags["collision"].tolist(), flags["out_of_bounds"].tolist(),
-                      truncated.cpu().numpy().tolist())  # Python bools at once, not one numpy scalar per env
-        infos: list[dict[str, Any]] = [
-            {"is_success": s, "collision": c, "out_of_bounds": o, "TimeLimit.truncated": t} for s, c, o, t in columns]
+        infos = list(map(dict, itertools.repeat(_QUIET_INFO, len(done))))  # most rows: every flag False
+        for i in np.flatnonzero(flags["success"] | flags["collision"] | flags["out_of_bounds"] | cut).tolist():
+            infos[i].update({"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
+                             "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(cut[i])})
         if done.any():
-            terminal = self.to_numpy(info["terminal_observation"])
+            rows = np.flatnonzero(done)
+            terminal = {k: v[rows] for k, v in self.to_numpy(info["terminal_observation"]).items()}  # done rows only
             ret = info["episode_return"].cpu().numpy()
             length = info["episode_length"].cpu().numpy()
             elapsed = round(time.time() - self._t0, 6)
-            for i in np.flatnonzero(done):
-                infos[i]["terminal_observation"] = {k: v[i] for k, v in terminal.items()}
+            for j, i in enumerate(rows.tolist()):
+                infos[i]["terminal_observation"] = {k: v[j] for k, v in terminal.items()}
                 infos[i]["episode"] = {"r": float(ret[i]), "l": int(length[i]), "t": elapsed}
                 infos[i]["lost"] = bool(flags["lost"][i])
                 infos[i]["swapped"] = bool(flags["swapped"][i])

@@ -8,7 +8,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from visfly_dist.dynamics.rotations import rotate
+from visfly_dist.dynamics.rotations import quat_to_rotmat
 from visfly_dist.errors import ConfigError
 
 TARGET_DIM = 4
@@ -17,15 +17,17 @@ TARGET_DIM = 4
 
 def to_body(quat: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """World vectors ``(N, 3)`` in each agent's body frame (``quat`` rotates body to world)."""
-    conj = quat * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=quat.dtype, device=quat.device)
-    return rotate(conj, v)
+    return body_from_rotmat(quat_to_rotmat(quat), v)
+
+
+def body_from_rotmat(rotmat: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """World vectors ``(N, 3)`` in the body frames of the rotations ``rotmat`` ``(N, 3, 3)`` (``R^T v``)."""
+    return (v.unsqueeze(-2) @ rotmat).squeeze(-2)
 
 
 def forward_axis(quat: torch.Tensor) -> torch.Tensor:
     """``(N, 3)`` the body +x axis in the world frame."""
-    x = torch.zeros(quat.shape[0], 3, dtype=quat.dtype, device=quat.device)
-    x[:, 0] = 1.0
-    return rotate(quat, x)
+    return quat_to_rotmat(quat)[..., 0]
 
 
 def target_observation(pos: torch.Tensor, quat: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -53,9 +55,7 @@ def obstacle_terms(pos: torch.Tensor, vel: torch.Tensor, nearest: torch.Tensor, 
     d = delta.norm(dim=1)
     direction = delta / d.clamp(min=1e-6)[:, None]
     approach = (vel * direction).sum(dim=1).clamp(min=0.0)
-    proximity = torch.where(seen, 1.0 / (d + 0.2), torch.zeros_like(d))
-    approach = torch.where(seen & (d < near), approach, torch.zeros_like(d))
-    return proximity, approach
+    return (d + 0.2).reciprocal() * seen, approach * (seen & (d < near))
 
 
 def metadata_point(meta: dict[str, Any], key: str, default: Sequence[float]) -> np.ndarray:

@@ -40,10 +40,12 @@ from gymnasium import spaces
 
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase, Spawn
+from visfly_dist.dynamics import QuadState
+from visfly_dist.dynamics.rotations import quat_to_rotmat
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import (
-    TARGET_DIM, angle_between, approach_speed, attitude_error, forward_axis, metadata_point, obstacle_terms,
-    progress_speed, reward_problem, target_observation, vec3_problem,
+    TARGET_DIM, angle_between, approach_speed, attitude_error, body_from_rotmat, metadata_point, obstacle_terms,
+    progress_speed, reward_problem, vec3_problem,
 )
 
 FORWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, offset=(0.2, 0.0, 0.0))
@@ -93,6 +95,27 @@ class NavigationConfig(EnvConfig):
         return out
 
 
+@dataclass(frozen=True)
+class _GoalGeometry:
+    """Terms several navigation hooks share, of one state.
+
+    Attributes:
+        distance: ``(N,)`` distance to the goal, m.
+        direction: ``(N, 3)`` unit vector to the goal (world frame).
+        rotmat: ``(N, 3, 3)`` body-to-world rotations (column 0: the body +x axis).
+    """
+
+    distance: torch.Tensor
+    direction: torch.Tensor
+    rotmat: torch.Tensor
+
+    @classmethod
+    def of(cls, state: QuadState, goal: torch.Tensor) -> "_GoalGeometry":
+        offset = goal - state.pos
+        distance = torch.linalg.vector_norm(offset, dim=1)
+        return cls(distance, offset / distance.clamp(min=1e-6)[:, None], quat_to_rotmat(state.quat))
+
+
 class NavigationEnv(DroneEnvBase):
     """Reach the goal of a cluttered scene without touching anything."""
 
@@ -103,6 +126,7 @@ class NavigationEnv(DroneEnvBase):
         super().__init__(config)
         self.goal = torch.zeros(self.num_envs, 3, device=self.device)
         self._prev_distance = torch.zeros(self.num_envs, device=self.device)
+        self._geometry: tuple[QuadState, torch.Tensor, bool, _GoalGeometry] | None = None
 
     def observation_space_dict(self) -> dict[str, spaces.Space]:
         out = super().observation_space_dict()
@@ -114,39 +138,55 @@ class NavigationEnv(DroneEnvBase):
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         goals = [metadata_point(self.scene_metadata(int(i)), "goal", self.config.goal) for i in idx.tolist()]
-        self.goal[idx] = torch.as_tensor(np.array(goals), dtype=torch.float32, device=self.device).reshape(-1, 3)
+        goal = self.goal.clone()  # replaced, never written into: the geometry cache keys on it
+        goal[idx] = torch.as_tensor(np.array(goals), dtype=torch.float32, device=self.device).reshape(-1, 3)
+        self.goal = goal
         self._prev_distance[idx] = self.goal_distance().detach()[idx]
 
     def goal_distance(self) -> torch.Tensor:
-        return (self.state.pos - self.goal).norm(dim=1)
+        """``(N,)`` distance from each agent to its goal, m."""
+        return self._goal_geometry().distance
+
+    def _goal_geometry(self) -> _GoalGeometry:
+        """The goal geometry of the current state, computed once for all hooks of a step.
+
+        A cache of a pure function keyed on the state and goal objects (both are replaced, never
+        written into) and the grad mode, so the hooks stay pure.
+        """
+        key = (self.state, self.goal, torch.is_grad_enabled())
+        cached = self._geometry
+        if cached is None or cached[0] is not key[0] or cached[1] is not key[1] or cached[2] != key[2]:
+            cached = self._geometry = (*key, _GoalGeometry.of(self.state, self.goal))
+        return cached[3]
 
     def get_observation(self) -> dict[str, torch.Tensor]:
-        s = self.state
-        return {"state": self.state_vector(self.goal), "target": target_observation(s.pos, s.quat, self.goal),
-                **self.frame.images}
+        g = self._goal_geometry()
+        target = torch.cat((body_from_rotmat(g.rotmat, g.direction), g.distance[:, None]), dim=1)
+        return {"state": self.state_vector(self.goal), "target": target, **self.frame.images}
 
     def get_success(self) -> torch.Tensor:
         return self.goal_distance().detach() < self.config.success_radius
 
     def get_reward(self) -> torch.Tensor:
-        s, cfg = self.state, self.config
-        distance = self.goal_distance()
+        s, cfg, g = self.state, self.config, self._goal_geometry()
         proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
-        common = -0.002 * s.vel.norm(dim=1) - 0.002 * s.omega.norm(dim=1) - 0.01 * proximity
+        speed, spin = torch.linalg.vector_norm(s.vel, dim=1), torch.linalg.vector_norm(s.omega, dim=1)
         if cfg.reward == "visfly":
-            return common + self._visfly_terms(approach)
-        progress = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
-        to_goal = (self.goal - s.pos) / distance.clamp(min=1e-6)[:, None]
-        heading = (forward_axis(s.quat) * to_goal).sum(dim=1)
-        reward = common + 0.05 * progress + 0.01 * heading - 0.05 * approach
-        return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()
+            common = -0.002 * speed - 0.002 * spin - 0.01 * proximity
+            return common + self._visfly_terms(approach, g)
+        progress = progress_speed(self._prev_distance, g.distance, cfg.ctrl_dt)
+        heading = (g.rotmat[..., 0] * g.direction).sum(dim=1)  # cos of the angle between body +x and the goal
+        terms = torch.stack((speed, spin, proximity, progress, heading, approach, self.success.float(),
+                             self.failure.float()), dim=1)
+        weights = (-0.002, -0.002, -0.01, 0.05, 0.01, -0.05, cfg.success_bonus, -cfg.fail_penalty)
+        return terms @ torch.tensor(weights, dtype=terms.dtype, device=terms.device)  # one op, not fifteen
 
-    def _visfly_terms(self, approach: torch.Tensor) -> torch.Tensor:
+    def _visfly_terms(self, approach: torch.Tensor, g: _GoalGeometry) -> torch.Tensor:
         """VisFly's progress, heading, attitude, obstacle-ramp and success terms."""
         s, cfg = self.state, self.config
         d_o = (self.frame.nearest - s.pos).norm(dim=1)
         progress = 0.01 * approach_speed(s.pos, s.vel, self.goal).clamp(max=10.0)
-        heading = -0.01 * (angle_between(s.vel, forward_axis(s.quat)) - math.pi / 18).clamp(min=0.0)
+        heading = -0.01 * (angle_between(s.vel, g.rotmat[..., 0]) - math.pi / 18).clamp(min=0.0)
         ramp = -0.005 * (1.0 - d_o).clamp(min=0.0) * approach
         remaining = (cfg.max_episode_steps - self.episode_step).float()
         bonus = self.success.float() * remaining * 0.1 * (0.2 + 0.8 / (1.0 + s.vel.norm(dim=1)))
