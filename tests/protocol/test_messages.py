@@ -189,3 +189,23 @@ def test_an_image_segment_target_survives_the_codec_and_bad_ones_are_refused():
         message["image_segment"] = {**target.to_message(), **bad}
         with pytest.raises(ProtocolError, match=match):
             parse_request(decode(encode(message)))
+
+
+@pytest.mark.parametrize("bad", ["", "k" * 257, "a\nb", "a/b", "s0\n", 7, None])
+def test_the_one_pass_key_check_names_the_first_bad_entry(bad):
+    keys = ["s0", "k" * 256, "a.b-c_d", bad, "s9"]
+    msg = _step(keys=keys, counts=np.array([2, 0, 0, 0, 0], np.int32))
+    with pytest.raises(ProtocolError, match=r"step\.keys\[3\]: (scene_key=|field .scene_key. must be str)"):
+        parse_request(msg)
+
+
+def test_a_parsed_step_keeps_the_wire_arrays_and_entry_views():
+    poses = np.concatenate([_poses(2), _poses(3) + [1, 0, 0, 0, 0, 0, 0]])
+    sent = StepRequest((ScenePoses("a", poses[:2], 1.5), ScenePoses("b", poses[2:2]), ScenePoses("a", poses[2:])))
+    req = parse_request(decode(encode(sent.to_message())))
+    assert req.keys == ("a", "b", "a") and req.counts.tolist() == [2, 0, 3] and req.times.tolist() == [1.5, 0, 0]
+    assert req.poses.dtype == np.float64 and req.bounds() == [(0, 2), (2, 2), (2, 5)]
+    np.testing.assert_array_equal(req.poses, poses)
+    assert [(s.scene_key, len(s.poses), s.time) for s in req.scenes] == [("a", 2, 1.5), ("b", 0, 0.0), ("a", 3, 0.0)]
+    with pytest.raises(AttributeError, match="immutable"):
+        req.render = False

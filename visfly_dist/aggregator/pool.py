@@ -85,8 +85,10 @@ class Reply:
 class Pending:
     """One request in flight to one worker; Zenoh's callback thread fills it in.
 
-    Only the first reply is kept (a worker answers once). ``done()`` turns true when the query is
-    finished: replied, dropped by the worker, or timed out; the pool's condition is notified then.
+    Only the first reply is kept (a worker answers once). ``done()`` turns true at that reply, or
+    when the query finishes without one (dropped by the worker, or timed out); the pool's
+    condition is notified then. The waiter wakes on the reply itself, not on the query's final
+    message, which only follows it.
     """
 
     def __init__(self, worker_id: str, timeout_s: float, condition: threading.Condition,
@@ -102,8 +104,11 @@ class Pending:
     def on_reply(self, reply: Any) -> None:
         if self.raw is None:
             self.raw = (True, reply.ok.payload.to_bytes()) if reply.ok is not None else (False, reply.err.payload.to_bytes())
+            self.on_done()
 
     def on_done(self) -> None:
+        if self._done.is_set():  # the reply already finished it
+            return
         self._done.set()
         with self._condition:
             self._condition.notify_all()
@@ -358,11 +363,13 @@ class WorkerPool:
     # ----- requests --------------------------------------------------------------------------
 
     def send(self, requests: Sequence[tuple[str, dict[str, Any]]], timeout_s: float) -> list[Pending]:
-        """Put every request on the wire and return at once, one :class:`Pending` each."""
+        """Put every request on the wire and return at once, one :class:`Pending` each.
+
+        Every request is encoded before the first is sent, so the requests leave back to back.
+        """
         assert self._session is not None, "pool is not open"
         out = []
-        for wid, message in requests:
-            payload = encode(message)
+        for wid, payload in [(wid, encode(message)) for wid, message in requests]:
             pending = Pending(wid, timeout_s, self._replies, len(payload))
             self._session.get(keys.worker_rpc(self.run_id, wid), payload=payload, timeout=timeout_s,
                               consolidation=zenoh.ConsolidationMode.NONE,

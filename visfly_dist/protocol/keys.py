@@ -11,7 +11,9 @@ from visfly_dist.errors import ConfigError
 
 ROOT = "visfly"
 MAX_CHUNK_CHARS = 256
-_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
+CHUNK_PATTERN = r"[A-Za-z0-9_.\-]"
+"""The characters a key chunk may hold (a regex character class)."""
+_CHUNK = re.compile(CHUNK_PATTERN + "+")
 
 
 def check_chunk(value: str, what: str) -> str:

@@ -8,15 +8,16 @@ is wrong. Replies are plain maps built by the worker (see each request's docstri
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from visfly_dist.errors import ConfigError, ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import SegmentTarget
-from visfly_dist.protocol.keys import check_chunk
+from visfly_dist.protocol.keys import CHUNK_PATTERN, MAX_CHUNK_CHARS, check_chunk
 
 MAX_AGENTS_PER_REQUEST = 100_000
 MAX_CAMERAS = 16
@@ -72,7 +73,6 @@ class ScenePoses:
         return {"scene_key": self.scene_key, "poses": np.ascontiguousarray(self.poses, dtype=np.float32)}
 
 
-@dataclass(frozen=True)
 class StepRequest:
     """Render every camera of every agent and query obstacles, for several scene entries at once.
 
@@ -91,22 +91,63 @@ class StepRequest:
     request order, so the receiver scatters each array with one index. With an image segment the
     worker could use, ``"images"`` is empty and ``"images_in_segment": true``; with one it could
     not open or whose nonce differs, the images are inline and ``"segment_refused"`` says why.
+
+    The request keeps the wire's arrays (no object per entry): build one from per-scene
+    :class:`ScenePoses` (tools, tests) or with :meth:`from_arrays` (what :func:`parse_request` does).
+
+    Attributes:
+        keys: ``(m,)`` scene key of each entry.
+        counts: ``(m,)`` int64 agents of each entry.
+        poses: ``(sum(counts), 7)`` float64 rows, entry after entry.
+        times: ``(m,)`` float64 simulation time of each entry, s.
     """
 
-    scenes: tuple[ScenePoses, ...]
-    render: bool = True
-    query: bool = True
-    search_radius: float = 5.0
-    image_segment: SegmentTarget | None = None
-    type: str = field(default="step", init=False)
+    type = "step"
+    __slots__ = ("keys", "counts", "poses", "times", "render", "query", "search_radius", "image_segment")
+
+    def __init__(self, scenes: Sequence[ScenePoses] = (), render: bool = True, query: bool = True,
+                 search_radius: float = 5.0, image_segment: SegmentTarget | None = None) -> None:
+        poses = [np.asarray(s.poses, dtype=np.float64).reshape(-1, 7) for s in scenes]
+        self._set(tuple(s.scene_key for s in scenes), np.array([len(p) for p in poses], dtype=np.int64),
+                  np.concatenate(poses) if poses else np.zeros((0, 7)),
+                  np.array([s.time for s in scenes], dtype=np.float64), render, query, search_radius, image_segment)
+
+    @classmethod
+    def from_arrays(cls, keys: Sequence[str], counts: np.ndarray, poses: np.ndarray, times: np.ndarray,
+                    render: bool = True, query: bool = True, search_radius: float = 5.0,
+                    image_segment: SegmentTarget | None = None) -> "StepRequest":
+        """A request straight from the wire's arrays (already validated: see :func:`parse_request`)."""
+        request = cls.__new__(cls)
+        request._set(tuple(keys), counts, poses, times, render, query, search_radius, image_segment)
+        return request
+
+    def _set(self, keys: tuple[str, ...], counts: np.ndarray, poses: np.ndarray, times: np.ndarray, render: bool,
+             query: bool, search_radius: float, image_segment: SegmentTarget | None) -> None:
+        for name, value in zip(self.__slots__, (keys, counts, poses, times, render, query, search_radius,
+                                                image_segment)):
+            object.__setattr__(self, name, value)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"StepRequest is immutable; cannot set {name!r}")
+
+    def __repr__(self) -> str:
+        return (f"StepRequest({len(self.keys)} entries, {len(self.poses)} agents, render={self.render}, "
+                f"query={self.query}, search_radius={self.search_radius}, image_segment={self.image_segment})")
+
+    def bounds(self) -> list[tuple[int, int]]:
+        """``(start, end)`` rows of each entry in :attr:`poses`."""
+        ends = np.cumsum(self.counts).tolist()
+        return list(zip([0, *ends[:-1]], ends))
+
+    @property
+    def scenes(self) -> tuple[ScenePoses, ...]:
+        """The entries as :class:`ScenePoses` (views on :attr:`poses`; for tools and tests)."""
+        return tuple(ScenePoses(key, self.poses[start:end], t) for key, (start, end), t
+                     in zip(self.keys, self.bounds(), self.times.tolist()))
 
     def to_message(self) -> dict[str, Any]:
-        counts = np.array([len(s.poses) for s in self.scenes], dtype=np.int32)
-        poses = np.concatenate([np.asarray(s.poses, dtype=np.float32).reshape(-1, 7) for s in self.scenes]) \
-            if self.scenes else np.zeros((0, 7), np.float32)
-        times = np.array([s.time for s in self.scenes], dtype=np.float64)
-        return step_message([s.scene_key for s in self.scenes], counts, poses, self.render, self.query,
-                            self.search_radius, times if np.any(times != 0) else None, self.image_segment)
+        return step_message(list(self.keys), self.counts, self.poses, self.render, self.query, self.search_radius,
+                            self.times if np.any(self.times != 0) else None, self.image_segment)
 
 
 def step_message(keys: list[str], counts: np.ndarray, poses: np.ndarray, render: bool = True, query: bool = True,
@@ -221,6 +262,23 @@ def _key(msg: Mapping[str, Any], what: str) -> str:
         raise ProtocolError(f"{what}: {exc}") from None
 
 
+_KEYS = re.compile(rf"{CHUNK_PATTERN}{{1,{MAX_CHUNK_CHARS}}}(?:\n{CHUNK_PATTERN}{{1,{MAX_CHUNK_CHARS}}})*")
+"""Keys joined by newlines (a character no key may hold): one match checks them all."""
+
+
+def _scene_keys(keys: list[Any], what: str) -> None:
+    """ProtocolError naming the first bad entry unless every key is a valid key chunk (one regex)."""
+    if not keys:
+        return
+    if all(type(k) is str for k in keys):
+        joined = "\n".join(keys)
+        if joined.count("\n") == len(keys) - 1 and _KEYS.fullmatch(joined):  # no key holds a newline
+            return
+    for i, key in enumerate(keys):
+        _key({"scene_key": key}, f"{what}.keys[{i}]")
+    raise AssertionError("the bulk key check refused keys that each pass check_chunk")  # pragma: no cover
+
+
 def _vec3(msg: Mapping[str, Any], key: str, what: str) -> tuple[float, float, float]:
     value = _get(msg, key, list, what)
     if len(value) != 3:
@@ -305,8 +363,7 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
     keys = _get(msg, "keys", list, what)
     if len(keys) > MAX_SCENES_PER_REQUEST:
         raise ProtocolError(f"{what}: {len(keys)} scene entries exceed the bound {MAX_SCENES_PER_REQUEST}")
-    for i, key in enumerate(keys):
-        _key({"scene_key": key}, f"{what}.keys[{i}]")
+    _scene_keys(keys, what)
     counts = msg.get("counts")
     if not isinstance(counts, np.ndarray) or counts.dtype.kind not in "iu" or counts.shape != (len(keys),):
         raise ProtocolError(f"{what}: counts must be an integer array of shape ({len(keys)},), one per key")
@@ -315,14 +372,12 @@ def parse_request(msg: Mapping[str, Any]) -> Request:
     poses = _poses(msg.get("poses"), what)
     if int(counts.sum()) != poses.shape[0]:
         raise ProtocolError(f"{what}: counts add up to {int(counts.sum())} but poses has {poses.shape[0]} rows")
-    times = msg.get("times", np.zeros(len(keys)))
+    times = msg["times"] if "times" in msg else np.zeros(len(keys))
     if not isinstance(times, np.ndarray) or times.dtype.kind != "f" or times.shape != (len(keys),):
         raise ProtocolError(f"{what}: times must be a float array of shape ({len(keys)},), one per key")
     if not np.all(np.isfinite(times)) or np.any(np.abs(times) > MAX_TIME_S):
         raise ProtocolError(f"{what}: times must be finite seconds within +-{MAX_TIME_S:g}")
-    ends = np.cumsum(counts)
-    parsed = tuple(ScenePoses(key, poses[end - n:end], t) for key, n, end, t
-                   in zip(keys, counts.tolist(), ends.tolist(), times.astype(np.float64).tolist()))
     radius = _finite(_get(msg, "search_radius", (int, float), what), "search_radius", 0.0, 1e4)
     segment = SegmentTarget.parse(msg["image_segment"]) if "image_segment" in msg else None
-    return StepRequest(parsed, _flag(msg, "render", what), _flag(msg, "query", what), radius, segment)
+    return StepRequest.from_arrays(keys, counts.astype(np.int64), poses, times.astype(np.float64),
+                                   _flag(msg, "render", what), _flag(msg, "query", what), radius, segment)

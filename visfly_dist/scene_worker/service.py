@@ -356,6 +356,7 @@ class SceneWorker:
             prepared = job.future.result()
             loaded = assemble_scene(prepared, self.backend)
             prepared = None
+            loaded.cameras = self._shared_cameras(loaded.cameras)
             self._scenes.put(loaded)
             scene = loaded.scene
             log.info("loaded scene %r from %r: %d triangles, backend %s",
@@ -371,6 +372,14 @@ class SceneWorker:
         self._timer.add("load_scene", time.perf_counter() - job.start)
         job.respond(True, body)
 
+    def _shared_cameras(self, cameras: tuple[CameraSpec, ...]) -> tuple[CameraSpec, ...]:
+        """The equal cameras tuple a loaded scene already holds, else ``cameras``: scenes with the
+        same cameras then share one tuple, and a step checks them by identity."""
+        for key in self._scenes.keys():
+            if self._scenes.get(key).cameras == cameras:
+                return self._scenes.get(key).cameras
+        return cameras
+
     def _unload(self, request: UnloadScene) -> dict[str, Any]:
         dropped = self._scenes.remove(request.scene_key)
         if dropped is not None:
@@ -385,21 +394,24 @@ class SceneWorker:
     def _step(self, request: StepRequest, timings: dict[str, float]) -> dict[str, Any]:
         """Every entry rendered and queried; the reply's arrays hold all entries' rows in order."""
         # Resolve every key and check the bounds before any work, so a bad request costs nothing.
-        loaded = [self._scenes.get(s.scene_key) for s in request.scenes]
-        if request.render:
-            self._check_pixels(request, loaded)
-        counts = np.array([len(s.poses) for s in request.scenes], dtype=np.int32)
+        loaded = [self._scenes.get(key) for key in request.keys]
+        if request.render and loaded:
+            cameras = loaded[0].cameras
+            if any(scene.cameras is not cameras and scene.cameras != cameras for scene in loaded):
+                raise ProtocolError("the scenes of one step request must carry the same cameras")
+            self._check_pixels(len(request.poses) * loaded[0].pixels_per_agent)
+        counts = request.counts.astype(np.int32)
         reply: dict[str, Any] = {"type": "step_result", "counts": counts, "images": {}}
         timings.setdefault("render_s", 0.0)
         timings.setdefault("query_s", 0.0)
+        bounds = request.bounds()
+        times = request.times.tolist()
+        poses = request.poses
         if request.render and loaded:
-            cameras = loaded[0].cameras
-            if any(scene.cameras != cameras for scene in loaded):
-                raise ProtocolError("the scenes of one step request must carry the same cameras")
             images, target, starts = self._image_buffers(request, cameras, counts, reply)
             with self._timer.time("render", timings):
-                render_scenes_into([(scene.renderer, item.poses, scene.multi_agent, item.time)
-                                    for item, scene in zip(request.scenes, loaded)], images, starts)
+                render_scenes_into([(scene.renderer, poses[start:end], scene.multi_agent, t)
+                                    for scene, (start, end), t in zip(loaded, bounds, times)], images, starts)
             if target is not None:
                 self._segments.publish(target)
                 reply["images_in_segment"] = True
@@ -407,8 +419,9 @@ class SceneWorker:
                 reply["images"] = images
         if request.query:
             with self._timer.time("query", timings):
-                answers = query_scenes([(scene.queries, item.poses[:, :3], item.time)
-                                        for item, scene in zip(request.scenes, loaded)],
+                positions = poses[:, :3]
+                answers = query_scenes([(scene.queries, positions[start:end], t)
+                                        for scene, (start, end), t in zip(loaded, bounds, times)],
                                        request.search_radius)
                 reply.update(collision=answers.collision, inside=answers.inside, nearest=answers.nearest,
                              distance=answers.distance)
@@ -432,8 +445,7 @@ class SceneWorker:
             reply["segment_refused"] = why
         return {c.name: np.empty((int(counts.sum()), *c.shape), c.dtype) for c in cameras}, None, None
 
-    def _check_pixels(self, request: StepRequest, loaded: Sequence[LoadedScene]) -> None:
-        pixels = sum(len(item.poses) * scene.pixels_per_agent for item, scene in zip(request.scenes, loaded))
+    def _check_pixels(self, pixels: int) -> None:
         if pixels > self.limits.max_pixels:
             raise ProtocolError(f"step asks for {pixels} pixels (agents x cameras x pixels), over this worker's "
                                 f"bound of {self.limits.max_pixels} (--max-pixels); split it into smaller requests",
