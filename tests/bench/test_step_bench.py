@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from visfly_dist.bench.step import (NO_RESETS, ROWS, STAGES, RowSpec, bench_rows, bench_step, expand_rows,
-                                    measure_steps)
+                                    measure_interleaved, measure_steps)
 from visfly_dist.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -59,8 +59,9 @@ def test_expand_rows_groups_and_names_in_order_once():
 def test_rows_reset_heavy_against_none_and_ratio():
     """Tiny versions of the reset pair: the reset row really resets every agent every 2 steps."""
     specs = [RowSpec("resets", 2, 2, max_episode_steps=2), RowSpec("no_resets", 2, 2, max_episode_steps=NO_RESETS)]
-    out = bench_rows(specs, steps=4, warmup=0, workers=1, res=8)
+    out = bench_rows(specs, steps=4, warmup=1, workers=1, res=8)
     resets, none = out["rows"]
+    assert resets["timings"] == none["timings"] == "env" and resets["steps"] == none["steps"] == 4
     assert resets["row"] == "resets" and none["row"] == "no_resets" and resets["scenes"] == 2
     assert resets["resets"] >= 4  # 2 agents x 4 steps, done every second step (crashes can only add)
     assert none["resets"] <= resets["resets"]
@@ -102,6 +103,31 @@ def test_env_step_timings_are_used_when_the_env_reports_them():
     assert row["timings"] == "env"
     assert row["stage_ms"]["render"] == pytest.approx(4.0) and row["stage_ms"]["transport"] == pytest.approx(2.0)
     assert row["stage_ms"]["other"] == pytest.approx(row["step_ms"] - 8.0, abs=0.01)
+
+
+def test_interleaved_rows_take_turns_in_blocks():
+    """Two envs measured together step in blocks, alternating which goes first; each row counts its own steps."""
+    calls = []
+
+    class FakeEnv:
+        num_envs = 2
+
+        def __init__(self, name):
+            self.name, self.step_timings = name, {}
+            self.quad = type("Q", (), {"hover_action": staticmethod(lambda: torch.zeros(4))})()
+
+        def reset(self):
+            return {}
+
+        def step(self, actions):
+            calls.append(self.name)
+            self.step_timings = {"physics_s": 0.0, "render_s": 0.0, "query_s": 0.0, "transport_s": 0.0}
+            return {}, np.zeros(2), np.ones(2, bool) if self.name == "a" else np.zeros(2, bool), [{}, {}]
+
+    rows = measure_interleaved([FakeEnv("a"), FakeEnv("b")], steps=5, warmup=1, block=2)
+    assert calls == ["a", "b"] + ["a", "a", "b", "b", "b", "b", "a", "a", "a", "b"]
+    assert [r["steps"] for r in rows] == [5, 5] and [r["resets"] for r in rows] == [10, 0]
+    assert all(r["timings"] == "env" for r in rows)
 
 
 def test_bench_step_rows_cli_rejects_unknown_row():

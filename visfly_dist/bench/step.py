@@ -10,6 +10,8 @@ Two ways to run it: a sweep over worker counts (``--agents``, ``--workers``, ``-
 layout (one agent per scene, 16 and 64 envs) against the one-scene layout (100 agents in one
 scene), a reset-heavy step against the same step without resets, remote workers behind an added
 network delay (:mod:`visfly_dist.bench.remote`), and the step overhead at 1,024 agents in 256 scenes.
+The reset row and the no-reset row are measured together, their envs stepped in turns
+(:data:`INTERLEAVED`), so that their ratio is not the machine's load moving between two runs.
 
 Stages. When the env reports its own ``step_timings`` (seconds of the last step: ``physics_s``,
 ``render_s``, ``query_s``, ``transport_s``, ...), those are used. Otherwise they are timed from
@@ -29,9 +31,9 @@ outside rendering, queries and physics, per step: transport plus other.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import time
-from contextlib import contextmanager
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
@@ -61,7 +63,7 @@ class StageClock:
         self.observe_calls = 0
 
 
-@contextmanager
+@contextlib.contextmanager
 def watch_stages(env: Any) -> Iterator[StageClock]:
     """Time ``env.quad.step`` and ``env.aggregator.observe`` while the block runs, then restore them.
 
@@ -158,6 +160,12 @@ ROWS: dict[str, RowSpec] = {r.name: r for r in (
 )}
 """The named rows of issue 13's figures."""
 
+INTERLEAVED = ("resets", "no_resets")
+"""Rows measured together, their envs stepped in turns, when both are asked for: their ratio is a goal
+of a few percent, less than the load on a shared machine moves between two rows measured one after the other."""
+INTERLEAVE_BLOCK = 10
+"""Steps an env takes before the other's turn: one episode of the reset row."""
+
 GROUPS: dict[str, tuple[str, ...]] = {
     "layout": ("train16", "train64", "one_scene"),
     "resets": ("resets", "no_resets"),
@@ -223,7 +231,7 @@ def make_step_env(task: str, agents: int, workers: int, res: int, backend: str, 
                     seed=seed, **env_kwargs)
 
 
-@contextmanager
+@contextlib.contextmanager
 def single_threaded_torch() -> Iterator[None]:
     """Run the block with one torch thread, as ``visfly-dist train`` does: with local workers on the
     same cores, torch's second thread makes each small dynamics op wait (measured 2.5 -> 47 ms)."""
@@ -309,11 +317,20 @@ def bench_rows(rows: Sequence[RowSpec], steps: int = 100, warmup: int = 3, *, wo
     _check_counts(steps, warmup)
     out = []
     with single_threaded_torch():
+        together = [spec for spec in rows if spec.name in INTERLEAVED]
         for spec in rows:
             n = overhead_steps if spec.name == "overhead" and overhead_steps else steps
+            if spec in together and len(together) > 1:
+                if spec is together[0]:
+                    if log:
+                        log(f"[bench step] {' and '.join(s.name for s in together)}, in turns of {INTERLEAVE_BLOCK} "
+                            f"steps: {'; '.join(s.what for s in together)} ({workers} workers, {res}x{res}, {n} steps each)")
+                    out += [_ordered(r) for r in _measure_rows_interleaved(together, n, warmup, workers, res, backend, task)]
+                continue
             if log:
                 log(f"[bench step] {spec.name}: {spec.what} ({workers} workers, {res}x{res}, {n} steps)")
-            out.append(_ordered(_measure_row(spec, n, warmup, workers, res, backend, task)))
+            with _row_env(spec, workers, res, backend, task) as (env, fields):
+                out.append(_ordered(measure_steps(env, n, warmup) | fields))
     by_name = {r["row"]: r for r in out}
     ratios = [{"ratio": name, "value": round(by_name[a][fig] / by_name[b][fig], 3), "goal": goal}
               for name, a, b, fig, goal in RATIOS if a in by_name and b in by_name]
@@ -324,13 +341,18 @@ def bench_rows(rows: Sequence[RowSpec], steps: int = 100, warmup: int = 3, *, wo
     return {"rows": out, "ratios": ratios}
 
 
-def _measure_row(spec: RowSpec, steps: int, warmup: int, workers: int, res: int, backend: str,
-                 task: str) -> dict[str, Any]:
+@contextlib.contextmanager
+def _row_env(spec: RowSpec, workers: int, res: int, backend: str, task: str) -> Iterator[tuple[Any, dict[str, Any]]]:
+    """The env of a row (and its remote workers behind the proxy, for the delay rows), and the row's
+    fixed fields; closed on exit."""
     from visfly_dist.bench.remote import RemoteWorkers
 
     kwargs = {} if spec.max_episode_steps is None else {"max_episode_steps": spec.max_episode_steps}
-    remote = None if spec.delay_ms is None else RemoteWorkers(workers, spec.delay_ms, backend)
-    try:
+    with contextlib.ExitStack() as stack:
+        remote = None
+        if spec.delay_ms is not None:
+            remote = RemoteWorkers(workers, spec.delay_ms, backend)
+            stack.callback(remote.close)
         t0 = time.perf_counter()
         try:
             env = make_step_env(task, spec.agents, workers, res, backend, remote is None, spec.scenes,
@@ -340,17 +362,19 @@ def _measure_row(spec: RowSpec, steps: int, warmup: int, workers: int, res: int,
                 raise RuntimeError(f"{spec.name}: the env did not start with remote workers; their logs:\n"
                                    f"{remote.log_tail()}") from exc
             raise
-        try:
-            startup = time.perf_counter() - t0
-            row = measure_steps(env, steps, warmup)
-        finally:
-            env.close()
-    finally:
-        if remote is not None:
-            remote.close()
-    return row | {"row": spec.name, "task": task, "agents": spec.agents, "scenes": spec.scenes, "workers": workers,
-                  "delay_ms": spec.delay_ms, "shm": remote is None, "backend": backend, "res": res,
-                  "startup_s": round(startup, 2)}
+        stack.callback(env.close)
+        yield env, {"row": spec.name, "task": task, "agents": spec.agents, "scenes": spec.scenes, "workers": workers,
+                    "delay_ms": spec.delay_ms, "shm": remote is None, "backend": backend, "res": res,
+                    "startup_s": round(time.perf_counter() - t0, 2)}
+
+
+def _measure_rows_interleaved(specs: Sequence[RowSpec], steps: int, warmup: int, workers: int, res: int,
+                              backend: str, task: str) -> list[dict[str, Any]]:
+    """Rows whose ratio is a goal, measured with their envs open together and stepped in turns."""
+    with contextlib.ExitStack() as stack:
+        opened = [stack.enter_context(_row_env(spec, workers, res, backend, task)) for spec in specs]
+        rows = measure_interleaved([env for env, _ in opened], steps, warmup, INTERLEAVE_BLOCK)
+        return [row | fields for row, (_, fields) in zip(rows, opened)]
 
 
 def _check_counts(steps: int, warmup: int) -> None:
@@ -364,25 +388,85 @@ def measure_steps(env: Any, steps: int, warmup: int) -> dict[str, Any]:
     Stages come from ``env.step_timings`` when the env reported them during the warm-up, else from
     :func:`watch_stages`; the row's ``timings`` says which (``env`` or ``wrapped``).
     """
-    n = env.num_envs
-    rng = np.random.default_rng(0)
-    hover = env.quad.hover_action().detach().cpu().numpy()
+    meter = StepMeter(env, warmup)
+    if meter.reported:
+        meter.run(steps)
+        return meter.row()
+    resets = 0
+    with watch_stages(env) as clock:
+        clock.reset()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            _, _, done, _ = env.step(meter.actions())
+            resets += int(done.sum())
+        wall = time.perf_counter() - t0
+    return _row(steps, env.num_envs, wall, resets, stage_seconds(clock, wall), "wrapped")
 
-    def actions() -> np.ndarray:
-        return np.clip(hover + ACTION_NOISE * rng.standard_normal((n, 4)), -1.0, 1.0).astype(np.float32)
 
-    env.reset()
-    for _ in range(warmup):
-        env.step(actions())
-    if warmup and reported_timings(env) is not None:
-        source, (wall, resets, seconds) = "env", _timed_steps_reported(env, steps, actions)
-    else:
-        source, (wall, resets, seconds) = "wrapped", _timed_steps_wrapped(env, steps, actions)
+class StepMeter:
+    """Times the steps of one env a block at a time, so that two envs can be measured interleaved.
+
+    Construction resets the env and takes ``warmup`` untimed steps; :attr:`reported` says whether the
+    env times its own steps (``step_timings``), which :meth:`run` needs.
+    """
+
+    def __init__(self, env: Any, warmup: int) -> None:
+        self.env = env
+        self._rng = np.random.default_rng(0)
+        self._hover = env.quad.hover_action().detach().cpu().numpy()
+        env.reset()
+        for _ in range(warmup):
+            env.step(self.actions())
+        self.reported = bool(warmup) and reported_timings(env) is not None
+        self.steps, self.wall, self.resets = 0, 0.0, 0
+        self.seconds = dict.fromkeys(STEP_TIMING_KEYS, 0.0)
+
+    def actions(self) -> np.ndarray:
+        """A noisy hover action for every agent."""
+        noise = ACTION_NOISE * self._rng.standard_normal((self.env.num_envs, 4))
+        return np.clip(self._hover + noise, -1.0, 1.0).astype(np.float32)
+
+    def run(self, steps: int) -> None:
+        """Time ``steps`` more steps, adding the env's own stage timings."""
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            _, _, done, _ = self.env.step(self.actions())
+            self.resets += int(done.sum())
+            timings = reported_timings(self.env) or {}
+            for stage, key in STEP_TIMING_KEYS.items():
+                self.seconds[stage] += float(timings.get(key, 0.0))
+        self.wall += time.perf_counter() - t0
+        self.steps += steps
+
+    def row(self) -> dict[str, Any]:
+        """The figures of the steps timed so far (``timings``: ``env``)."""
+        seconds = {stage: self.seconds[stage] for stage in STAGES if stage != "other"}
+        seconds["other"] = max(0.0, self.wall - sum(seconds.values()))
+        return _row(self.steps, self.env.num_envs, self.wall, self.resets, {k: seconds[k] for k in STAGES}, "env")
+
+
+def measure_interleaved(envs: Sequence[Any], steps: int, warmup: int, block: int) -> list[dict[str, Any]]:
+    """:func:`measure_steps` of several envs, taking turns ``block`` steps at a time, so that every
+    env's figures come from the same stretch of time: their ratios are not skewed by the machine's
+    load moving between them. Envs that do not time their own steps are measured one after another."""
+    meters = [StepMeter(env, warmup) for env in envs]
+    if not all(m.reported for m in meters):
+        return [measure_steps(env, steps, 0) for env in envs]
+    done, turn = 0, 0
+    while done < steps:
+        n = min(block, steps - done)
+        for meter in meters if turn % 2 == 0 else meters[::-1]:  # neither always goes first
+            meter.run(n)
+        done, turn = done + n, turn + 1
+    return [m.row() for m in meters]
+
+
+def _row(steps: int, agents: int, wall: float, resets: int, seconds: Mapping[str, float], source: str) -> dict[str, Any]:
     total = sum(seconds.values())
     stage_ms = {k: round(1e3 * v / steps, 3) for k, v in seconds.items()}
     return {
         "steps": steps,
-        "env_steps_per_s": n * steps / wall,
+        "env_steps_per_s": agents * steps / wall,
         "step_ms": 1e3 * wall / steps,
         "overhead_ms": round(stage_ms["transport"] + stage_ms["other"], 3),
         "resets": resets,
@@ -390,34 +474,6 @@ def measure_steps(env: Any, steps: int, warmup: int) -> dict[str, Any]:
         "stage_ms": stage_ms,
         "timings": source,
     }
-
-
-def _timed_steps_wrapped(env: Any, steps: int, actions: Callable[[], np.ndarray]) -> tuple[float, int, dict[str, float]]:
-    resets = 0
-    with watch_stages(env) as clock:
-        clock.reset()
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            _, _, done, _ = env.step(actions())
-            resets += int(done.sum())
-        wall = time.perf_counter() - t0
-    return wall, resets, stage_seconds(clock, wall)
-
-
-def _timed_steps_reported(env: Any, steps: int, actions: Callable[[], np.ndarray]) -> tuple[float, int, dict[str, float]]:
-    resets = 0
-    sums = dict.fromkeys(STEP_TIMING_KEYS, 0.0)
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        _, _, done, _ = env.step(actions())
-        resets += int(done.sum())
-        timings = reported_timings(env) or {}
-        for stage, key in STEP_TIMING_KEYS.items():
-            sums[stage] += float(timings.get(key, 0.0))
-    wall = time.perf_counter() - t0
-    seconds = {stage: sums[stage] for stage in STAGES if stage != "other"}
-    seconds["other"] = max(0.0, wall - sum(seconds.values()))
-    return wall, resets, {k: seconds[k] for k in STAGES}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
