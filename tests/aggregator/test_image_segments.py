@@ -17,7 +17,7 @@ from tests.helpers import call, client_session, wait_for
 from visfly_dist.aggregator import image_shm
 from visfly_dist.aggregator.image_shm import ImageSegments
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.protocol.image_segment import HEADER_BYTES, SegmentTarget
+from visfly_dist.protocol.image_segment import HEADER_BYTES, SEQ, SegmentTarget
 from visfly_dist.protocol.messages import Health, LoadScene, ScenePoses, StepRequest
 
 pytestmark = pytest.mark.worker
@@ -251,6 +251,36 @@ def test_no_room_for_a_segment_means_inline_images(monkeypatch, tmp_path):
     segments = ImageSegments(RUN, CAMS)
     assert segments.offer([("w", 1)], 4, 0) is None and segments.offer([("w", 1)], 4, 0) is None
     assert segments.files() == []
+
+
+def test_only_images_taken_in_place_count_as_written_over():
+    """A worker that wrote into a segment before and whose request now got no reply did not write
+    over anything (it failed already: reporting it would drop a worker the lost-request policy keeps)."""
+    segments = ImageSegments(RUN, CAMS)
+
+    def written(step):
+        target = segments.target(step, ("w", 1), [0], [])
+        SEQ.pack_into(step.segment.mm, target.seq_offset, target.seq)  # what the worker does after its images
+        assert segments.check(step, "w", {"images_in_segment": True}) == (True, "")
+        return target
+
+    first = segments.offer([("w", 1)], 4, 0)
+    written(first)
+    segment = first.segment
+    assert segments.release(first) == []
+    del first
+    unanswered = segments.offer([("w", 1)], 4, 0)
+    assert unanswered.segment is segment
+    segments.target(unanswered, ("w", 1), [0], [])  # sent, and no reply came
+    assert segments.release(unanswered, failed=True) == []
+    del unanswered
+    late = segments.offer([("w", 1)], 4, 0)  # the failed step's segment was retired: a new one
+    assert late.segment is not segment
+    target = written(late)
+    SEQ.pack_into(late.segment.mm, target.seq_offset, 0)  # a late write began after the reply was read
+    assert segments.release(late) == ["w"]
+    segments.close()
+    assert _shm_files(RUN) == []
 
 
 def test_a_segment_grows_by_a_new_file_and_keeps_room_for_varying_rows():

@@ -89,7 +89,7 @@ def test_a_swap_loads_the_next_source_under_a_fresh_key_and_a_failed_move_change
     assert table.plan_swap(0, "third", pool.generations) is None and table.slots[0].source == "third"
 
 
-def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key():
+def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key_or_a_move_ends():
     pool = FakePool("a", "b")
     table = SlotTable(["s"] * 4, agents_per_scene=1)
     start = table.revision
@@ -102,6 +102,9 @@ def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key():
     move = table.plan_swap(0, "t", pool.generations)
     assert table.revision == placed
     table.fail_move(0, move)
-    assert table.revision == placed
+    failed = table.revision
+    assert failed > placed  # the slot may be planned again
+    table.fail_move(0, move)
+    assert table.revision == failed  # not its move any more: nothing changed
     table.orphan_worker("a")
-    assert table.revision > placed
+    assert table.revision > failed

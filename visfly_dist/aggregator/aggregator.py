@@ -169,6 +169,7 @@ class Aggregator:
         self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
         self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]] = {}
         self._plans_revision = -1
+        self._settled: tuple[int, tuple] | None = None  # (table revision, live generations) of a pass with nothing to do
         self._rng = np.random.default_rng(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
         self._images = ImageSegments(self.run_id, cameras) if pool.shared_memory else None
@@ -518,6 +519,9 @@ class Aggregator:
         self._pool.respawn_exited()
         live = self._pool.live_workers()
         gens = {w: self._pool.generation(w) for w in live}
+        settled = (self.table.revision, tuple(gens.items()))
+        if settled == self._settled and not (self._background or self._stale or self._pending_switch):
+            return  # nothing changed since a pass that found nothing to do: it would find nothing again
         for s in self.table.slots:
             if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
                 why = "liveliness token gone" if s.worker not in gens else "restarted"
@@ -530,6 +534,8 @@ class Aggregator:
         if not plan and not self._background and not self.table.orphans():
             plan = self.table.plan_rebalance(live, gens)
         self._send_loads(plan)
+        busy = plan or self._background or self._pending_switch
+        self._settled = None if busy else (self.table.revision, tuple(gens.items()))
 
     def _wait_out_outage(self) -> list[str]:
         """No worker is reachable: wait for one (up to ``outage_limit_s``), or raise NoWorkersError."""

@@ -165,6 +165,7 @@ class StepImages:
     fresh: bool  # the file was still linked when the step was sent (a worker that cannot open it is elsewhere)
     targets: dict[str, tuple[int, SegmentTarget]] = field(default_factory=dict)  # worker -> (generation, target)
     refused: bool = False  # a worker could not use it: it is not offered again
+    written: set[str] = field(default_factory=set)  # workers whose images of this step were taken in place
 
 
 class ImageSegments:
@@ -234,6 +235,7 @@ class ImageSegments:
             if seg.seq(target.seq_offset) != target.seq:
                 return False, f"image segment {seg.name} does not hold the images of request {target.seq}"
             seg.users.add((worker_id, generation))
+            step.written.add(worker_id)
             return True, ""
         if "segment_refused" in message:
             step.refused = True
@@ -247,14 +249,14 @@ class ImageSegments:
         segment is retired; the caller copies the images out).
 
         Returns:
-            Workers whose images were written over since their reply was read (a late write):
-            their rows are not to be trusted.
+            Workers whose images of this step were taken in place and written over since their
+            reply was read (a late write): their rows are not to be trusted. A worker whose reply
+            did not come is not one of them (it failed already).
         """
         seg = step.segment
         seg.unlink()
         seg.busy = False
-        over = [w for w, (gen, t) in step.targets.items()
-                if (w, gen) in seg.users and seg.seq(t.seq_offset) != t.seq]
+        over = [w for w in step.written if seg.seq(step.targets[w][1].seq_offset) != step.targets[w][1].seq]
         if failed or over or step.refused or seg.retired:
             self._retire(seg)
         return over

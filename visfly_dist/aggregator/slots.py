@@ -56,7 +56,7 @@ class SlotTable:
         self.agents_per_scene = int(agents_per_scene)
         self.slots = [Slot(i, source, f"s{i}v0") for i, source in enumerate(sources)]
         self.agent_scene = np.arange(len(self.slots) * self.agents_per_scene, dtype=np.int64) // self.agents_per_scene
-        self.revision = 0  # bumped whenever a slot's worker or key changes: plans over the table are stale
+        self.revision = 0  # bumped whenever a slot's worker or key changes or a move ends: plans over the table are stale
 
     def __len__(self) -> int:
         return len(self.slots)
@@ -153,6 +153,7 @@ class SlotTable:
         """The load failed; the slot keeps what it had (an orphan is placed again later)."""
         if self.slots[slot].move is move:
             self.slots[slot].move = None
+            self.revision += 1
 
     def by_worker(self, slots: Iterable[int]) -> dict[str, list[int]]:
         """Served slots of ``slots`` grouped by worker (orphans left out)."""
