@@ -31,6 +31,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from visfly_dist.aggregator import Aggregator
 from visfly_dist.aggregator.assembler import empty_observation
+from visfly_dist.client.buffer_pool import BufferPool
 from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
 from visfly_dist.client.frame import SensorFrame
 from visfly_dist.client.noise import SensorNoise
@@ -156,6 +157,7 @@ class DroneEnvBase(VecEnv):
         self.actions = torch.zeros(n, 4, device=self.device)
         self.state: QuadState = self.quad.initial_state(torch.zeros(n, 3, device=self.device))
         self.frame: SensorFrame | None = None
+        self._image_buffers = BufferPool()  # merged images of reset steps, reused once nobody holds them
         self.frame_timings: dict[str, float] = {}
         self.step_timings: dict[str, float] = {}
         # Each agent's next start, drawn ahead so its first view travels with an earlier step.
@@ -319,7 +321,7 @@ class DroneEnvBase(VecEnv):
         self.frame_timings = dict(obs.timings)
         rows = self._frame(obs)
         everyone = len(flight.ticket.agents) == self.num_envs
-        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows)
+        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)
         t1 = time.perf_counter()
         group, full = flight.group, flight.full
         # with every agent moving (a plain step) the group and hold masks select everything: skip them
@@ -482,7 +484,7 @@ class DroneEnvBase(VecEnv):
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
         before = self.frame
-        self.frame = rows if observation is None else self.frame.scatter(idx, rows)
+        self.frame = rows if observation is None else self.frame.scatter(idx, rows, self._image_buffers)
         self._draw_next_starts(idx)
         fresh_obs = self._observation()
         if observation is None:

@@ -1,7 +1,8 @@
 """What the workers saw, as torch tensors: images (with sensor noise) and obstacle queries.
 
 The aggregator deals in numpy; this module is where its ``Observation`` crosses into torch, noise
-is applied (batched, seeded) and the fresh rows of reset agents are merged in.
+is applied (batched, seeded) and the fresh rows of reset agents are merged in (into reused
+buffers, see :mod:`visfly_dist.client.buffer_pool`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import torch
 
+from visfly_dist.client.buffer_pool import BufferPool
 from visfly_dist.client.noise import SensorNoise
 
 
@@ -56,14 +58,23 @@ class SensorFrame:
             lost=torch.as_tensor(np.asarray(obs.lost, dtype=bool), device=device),
         )
 
-    def scatter(self, index: torch.Tensor, rows: "SensorFrame") -> "SensorFrame":
-        """A frame whose rows ``index`` come from ``rows`` (which holds exactly those rows)."""
+    def scatter(self, index: torch.Tensor, rows: "SensorFrame", buffers: BufferPool | None = None) -> "SensorFrame":
+        """A frame whose rows ``index`` come from ``rows`` (which holds exactly those rows).
+
+        This frame is left as it is. With ``buffers`` the merged CPU images are written into a
+        buffer of that pool (its pages already mapped) instead of a fresh tensor.
+        """
 
         def put(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
             return full.clone().index_copy_(0, index, part)  # index_copy_: images ~8x faster than out[index] =
 
+        def put_image(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+            if buffers is None or full.device.type != "cpu":
+                return put(full, part)
+            return buffers.take(tuple(full.shape), full.dtype).copy_(full).index_copy_(0, index, part)
+
         return SensorFrame(
-            images={k: put(v, rows.images[k]) for k, v in self.images.items()},
+            images={k: put_image(v, rows.images[k]) for k, v in self.images.items()},
             collision=put(self.collision, rows.collision),
             inside=put(self.inside, rows.inside),
             nearest=put(self.nearest, rows.nearest),

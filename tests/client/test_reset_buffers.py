@@ -1,0 +1,96 @@
+"""Reset steps merge images into reused buffers: never one a caller still holds, and the held
+observation and terminal observation stay as they were handed out."""
+
+import numpy as np
+import pytest
+import torch
+
+from visfly_dist.client.buffer_pool import BufferPool
+
+from tests.client.counter_task import make_counter
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = make_counter(seed=5)
+    yield env
+    env.close()
+
+
+def hover(env):
+    return torch.as_tensor(np.tile(env.quad.hover_action().numpy(), (env.num_envs, 1)))
+
+
+def reset_step(env, agent):
+    """One step in which ``agent`` succeeds (and is reset)."""
+    env.force_success[agent] = True
+    try:
+        return env.step_tensor(hover(env))
+    finally:
+        env.force_success[:] = False
+
+
+def pooled(env, image: torch.Tensor) -> bool:
+    return any(np.shares_memory(image.numpy(), a) for a in env._image_buffers._arrays)
+
+
+def test_held_observations_stay_intact_across_later_reset_steps(env):
+    env.reset()
+    env.step_tensor(hover(env))
+    held = []
+    for i in range(6):  # more than the pool keeps, every one held
+        result = reset_step(env, i % env.num_envs)
+        held.append((result.observation, result.info["terminal_observation"],
+                     result.observation["depth"].clone(), result.info["terminal_observation"]["depth"].clone()))
+        env.step_tensor(hover(env))
+    assert len({obs["depth"].data_ptr() for obs, *_ in held}) == len(held)  # no buffer handed out twice
+    for obs, terminal, depth, terminal_depth in held:
+        assert torch.equal(obs["depth"], depth) and torch.equal(terminal["depth"], terminal_depth)
+    # the merge itself: the reset row changed, the others are the terminal observation's
+    obs, terminal, *_ = held[1]
+    assert obs["step"][:, 0].tolist()[1] == 0 and terminal["step"][1, 0] > 0
+    assert torch.equal(obs["depth"][[0, 2, 3]], terminal["depth"][[0, 2, 3]])
+
+
+def test_a_buffer_is_reused_once_nothing_holds_it(env):
+    env.reset()
+    env.step_tensor(hover(env))
+    first = reset_step(env, 0).observation["depth"]
+    assert pooled(env, first)
+    ptr = first.data_ptr()
+    env.step_tensor(hover(env))  # the env's own frame lets go of it
+    assert reset_step(env, 1).observation["depth"].data_ptr() != ptr  # still held here (``first``)
+    env.step_tensor(hover(env))
+    view = first.numpy()[1:]  # a numpy view of the tensor holds it too
+    del first
+    assert reset_step(env, 2).observation["depth"].data_ptr() != ptr
+    env.step_tensor(hover(env))
+    del view
+    assert reset_step(env, 3).observation["depth"].data_ptr() == ptr
+
+
+def test_terminal_observation_rows_of_done_agents_survive_the_next_reset_steps(env):
+    env.reset()
+    env.step_tensor(hover(env))
+    obs, _, done, infos = env.to_sb3(reset_step(env, 2))
+    term = infos[2]["terminal_observation"]["depth"].copy()
+    kept = {k: v.copy() for k, v in obs.items()}
+    for i in range(3):
+        env.to_sb3(reset_step(env, i))
+    assert done.tolist() == [False, False, True, False]
+    assert np.array_equal(infos[2]["terminal_observation"]["depth"], term)
+    assert all(np.array_equal(obs[k], kept[k]) for k in kept)
+
+
+def test_pool_reuses_only_free_buffers_and_stays_bounded():
+    pool = BufferPool(size=2)
+    a = pool.take((3, 4), torch.float32)
+    ptr = a.data_ptr()
+    b = a[1:]  # a tensor view holds the buffer
+    del a
+    assert pool.take((3, 4), torch.float32).data_ptr() != ptr
+    del b
+    assert pool.take((3, 4), torch.float32).data_ptr() == ptr
+    assert pool.take((3, 4), torch.int32).dtype == torch.int32  # another dtype: another buffer
+    held = [pool.take((3, 4), torch.float32) for _ in range(5)]
+    assert len(pool._arrays) == 2 and len({t.data_ptr() for t in held}) == 5
