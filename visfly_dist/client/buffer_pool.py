@@ -44,7 +44,7 @@ class BufferPool:
 
 
 def _unheld_refcount() -> int:
-    """``sys.getrefcount`` of an array that only a list entry and a loop variable refer to."""
-    for array in [np.empty(1)]:
-        return sys.getrefcount(array)
-    raise AssertionError("unreachable")
+    """``sys.getrefcount`` of an array that only a list entry and a local name refer to (as in ``take``'s loop)."""
+    arrays = [np.empty(1)]
+    array = arrays[0]
+    return sys.getrefcount(array)
