@@ -111,9 +111,13 @@ class SceneTable:
     def __init__(self) -> None:
         self._scenes: dict[str, LoadedScene] = {}
         self._loading: dict[str, Any] = {}
+        # The last lookup(): steps name the same keys request after request. Any change to the
+        # loaded scenes clears it.
+        self._last: tuple[tuple[str, ...], tuple[LoadedScene, ...]] = ((), ())
 
     def put(self, loaded: LoadedScene) -> None:
         """Add a scene, replacing (and closing) one loaded under the same key."""
+        self._last = ((), ())
         old = self._scenes.pop(loaded.key, None)
         self._scenes[loaded.key] = loaded
         if old is not None:
@@ -132,12 +136,26 @@ class SceneTable:
                 code=ErrorCode.UNKNOWN_SCENE,
             ) from None
 
+    def lookup(self, keys: tuple[str, ...]) -> tuple[LoadedScene, ...]:
+        """The scene of every key, in order (the same tuple object as the last call for the same keys
+        while no scene was put or removed); SceneError as :meth:`get` for the first key not loaded."""
+        last_keys, last = self._last
+        if keys == last_keys:
+            return last
+        try:
+            found = tuple([self._scenes[key] for key in keys])
+        except KeyError:
+            found = tuple([self.get(key) for key in keys])  # raises for the first key not loaded
+        self._last = (keys, found)
+        return found
+
     def remove(self, key: str) -> Any | None:
         """Forget the scene under ``key`` (closing its renderer) and its load in progress, if any.
 
         Returns:
             The token of the load in progress that was dropped, or ``None``.
         """
+        self._last = ((), ())
         job = self._loading.pop(key, None)
         if job is None or key in self._scenes:
             self.get(key).renderer.close()
@@ -179,6 +197,7 @@ class SceneTable:
 
     def close(self) -> None:
         """Close every renderer; the table is empty afterwards. Idempotent."""
+        self._last = ((), ())
         self._loading.clear()
         while self._scenes:
             _, loaded = self._scenes.popitem()
