@@ -122,7 +122,6 @@ class SceneWorker:
         self.session_config = session
         self.limits = limits or WorkerLimits()
         self._scenes = SceneTable()
-        self._same_cameras: tuple[LoadedScene, ...] = ()  # the last scenes found to share their cameras
         self._segments = SegmentMappings()
         self._timer = StageTimer()
         self._last_encode_s = 0.0
@@ -395,13 +394,11 @@ class SceneWorker:
     def _step(self, request: StepRequest, timings: dict[str, float]) -> dict[str, Any]:
         """Every entry rendered and queried; the reply's arrays hold all entries' rows in order."""
         # Resolve every key and check the bounds before any work, so a bad request costs nothing.
-        loaded = self._scenes.lookup(request.keys)
+        loaded, same_cameras = self._scenes.lookup(request.keys)
         if request.render and loaded:
+            if not same_cameras:
+                raise ProtocolError("the scenes of one step request must carry the same cameras")
             cameras = loaded[0].cameras
-            if loaded is not self._same_cameras:  # checked once per list of scenes
-                if any(scene.cameras is not cameras and scene.cameras != cameras for scene in loaded):
-                    raise ProtocolError("the scenes of one step request must carry the same cameras")
-                self._same_cameras = loaded
             self._check_pixels(len(request.poses) * loaded[0].pixels_per_agent)
         counts = request.counts.astype(np.int32)
         reply: dict[str, Any] = {"type": "step_result", "counts": counts, "images": {}}
