@@ -62,6 +62,12 @@ def _inf_poses():
     return p
 
 
+def _nan_quat():
+    p = _poses()
+    p[1, 5] = np.nan
+    return p
+
+
 def _long_quat():
     p = _poses()
     p[0, 3] = 2.0
@@ -113,6 +119,7 @@ MALFORMED = {
     "step poses 3d": (_step_poses(np.zeros((1, 2, 7), np.float32)), "poses shape \\(1, 2, 7\\)"),
     "step poses nan": (_step_poses(_nan_poses()), "NaN or infinite"),
     "step poses inf": (_step_poses(_inf_poses()), "NaN or infinite"),
+    "step quaternion nan": (_step_poses(_nan_quat()), "NaN or infinite"),
     "step non-unit quaternion": (_step_poses(_long_quat()), "quaternions must be unit"),
     "step zero quaternion": (_step_poses(np.zeros((1, 7), np.float32)), "quaternions must be unit"),
     "step far position": (_step_poses(_far_poses()), "positions beyond 1e6 m"),

@@ -140,3 +140,22 @@ def test_close_answers_loads_in_progress_with_shutting_down(make_worker):
 def test_limits_refuse_bad_values(kwargs):
     with pytest.raises(ConfigError, match=f"{next(iter(kwargs))}="):
         WorkerLimits(**kwargs)
+
+
+def test_a_repeated_step_sees_scenes_unloaded_reloaded_and_re_cameraed_in_between(make_worker):
+    """The worker remembers the last step's scenes; any load or unload in between is seen."""
+    worker = make_worker()
+    assert _call(worker, _load("a"))[0] and _call(worker, _load("b"))[0]
+    poses = np.zeros((2, 7), np.float32)
+    poses[:, 2], poses[:, 3] = 1.0, 1.0
+    both = StepRequest((ScenePoses("a", poses), ScenePoses("b", poses))).to_message()
+    assert _call(worker, both)[0] and _call(worker, both)[0]
+    assert _call(worker, UnloadScene("b").to_message())[0]
+    assert _error(worker, both)[:2] == ("SceneError", "unknown_scene")
+    wide = CameraSpec(name="depth", width=32, height=12)
+    assert _call(worker, LoadScene("b", "gen:empty", (wide,)).to_message())[0]
+    assert _error(worker, both) == ("ProtocolError", "bad_request",
+                                    "the scenes of one step request must carry the same cameras")
+    assert _call(worker, _load("b"))[0]
+    ok, reply = _call(worker, both)
+    assert ok and reply["counts"].tolist() == [2, 2] and reply["images"]["depth"].shape == (4, 1, 12, 16)

@@ -188,6 +188,10 @@ def test_step_times_travel_on_the_wire_and_are_validated():
         parse_request({**base, "times": [0.0, 1.0]})
     with pytest.raises(ProtocolError, match="times must be finite seconds"):
         parse_request({**base, "times": np.array([0.0, np.inf])})
+    with pytest.raises(ProtocolError, match="times must be finite seconds"):
+        parse_request({**base, "times": np.array([np.nan, 0.0])})
+    with pytest.raises(ProtocolError, match="times must be finite seconds"):
+        parse_request({**base, "times": np.array([0.0, -2e9])})
 
 
 @pytest.mark.worker

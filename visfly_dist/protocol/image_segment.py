@@ -164,7 +164,7 @@ def _entry_rows(value: Any) -> tuple[int, ...] | None:
     if value is None:
         return None
     rows = np.asarray(value)
-    if rows.ndim != 1 or not (np.issubdtype(rows.dtype, np.integer) or rows.size == 0) or (rows.size and rows.min() < 0) \
+    if rows.ndim != 1 or not (rows.dtype.kind in "iu" or rows.size == 0) or (rows.size and rows.min() < 0) \
             or (rows.size and rows.max() > MAX_SEGMENT_BYTES):
         raise ProtocolError("step.image_segment.entry_rows must be a 1-D array of row indices >= 0")
-    return tuple(rows.astype(np.int64).tolist())
+    return tuple(rows.tolist())

@@ -394,11 +394,11 @@ class SceneWorker:
     def _step(self, request: StepRequest, timings: dict[str, float]) -> dict[str, Any]:
         """Every entry rendered and queried; the reply's arrays hold all entries' rows in order."""
         # Resolve every key and check the bounds before any work, so a bad request costs nothing.
-        loaded = [self._scenes.get(key) for key in request.keys]
+        loaded, same_cameras = self._scenes.lookup(request.keys)
         if request.render and loaded:
-            cameras = loaded[0].cameras
-            if any(scene.cameras is not cameras and scene.cameras != cameras for scene in loaded):
+            if not same_cameras:
                 raise ProtocolError("the scenes of one step request must carry the same cameras")
+            cameras = loaded[0].cameras
             self._check_pixels(len(request.poses) * loaded[0].pixels_per_agent)
         counts = request.counts.astype(np.int32)
         reply: dict[str, Any] = {"type": "step_result", "counts": counts, "images": {}}

@@ -111,9 +111,12 @@ class SceneTable:
     def __init__(self) -> None:
         self._scenes: dict[str, LoadedScene] = {}
         self._loading: dict[str, Any] = {}
+        # The last lookup()'s keys and answer; any change to the loaded scenes clears it.
+        self._last: tuple[tuple[str, ...], tuple[LoadedScene, ...], bool] = ((), (), True)
 
     def put(self, loaded: LoadedScene) -> None:
         """Add a scene, replacing (and closing) one loaded under the same key."""
+        self._last = ((), (), True)
         old = self._scenes.pop(loaded.key, None)
         self._scenes[loaded.key] = loaded
         if old is not None:
@@ -132,12 +135,31 @@ class SceneTable:
                 code=ErrorCode.UNKNOWN_SCENE,
             ) from None
 
+    def lookup(self, keys: tuple[str, ...]) -> tuple[tuple[LoadedScene, ...], bool]:
+        """The scene of every key, in order, and whether they all carry the same cameras.
+
+        Steps name the same keys request after request: the answer for the last keys is kept
+        until a scene is put or removed. SceneError as :meth:`get` for the first key not loaded.
+        """
+        last_keys, found, same_cameras = self._last
+        if keys == last_keys:
+            return found, same_cameras
+        try:
+            found = tuple([self._scenes[key] for key in keys])
+        except KeyError:
+            found = tuple([self.get(key) for key in keys])  # raises for the first key not loaded
+        cameras = found[0].cameras if found else ()
+        same_cameras = all(s.cameras is cameras or s.cameras == cameras for s in found)
+        self._last = (keys, found, same_cameras)
+        return found, same_cameras
+
     def remove(self, key: str) -> Any | None:
         """Forget the scene under ``key`` (closing its renderer) and its load in progress, if any.
 
         Returns:
             The token of the load in progress that was dropped, or ``None``.
         """
+        self._last = ((), (), True)
         job = self._loading.pop(key, None)
         if job is None or key in self._scenes:
             self.get(key).renderer.close()
@@ -179,6 +201,7 @@ class SceneTable:
 
     def close(self) -> None:
         """Close every renderer; the table is empty afterwards. Idempotent."""
+        self._last = ((), (), True)
         self._loading.clear()
         while self._scenes:
             _, loaded = self._scenes.popitem()
