@@ -383,7 +383,8 @@ def _check_counts(steps: int, warmup: int) -> None:
 
 
 def measure_steps(env: Any, steps: int, warmup: int) -> dict[str, Any]:
-    """Reset ``env``, take ``warmup`` untimed steps, then time ``steps`` steps of a noisy hover policy.
+    """Reset ``env``, take ``warmup`` untimed steps, then time ``steps`` steps of a noisy hover policy
+    (each step's ``env.step`` call; drawing the actions is not timed).
 
     Stages come from ``env.step_timings`` when the env reported them during the warm-up, else from
     :func:`watch_stages`; the row's ``timings`` says which (``env`` or ``wrapped``).
@@ -392,14 +393,15 @@ def measure_steps(env: Any, steps: int, warmup: int) -> dict[str, Any]:
     if meter.reported:
         meter.run(steps)
         return meter.row()
-    resets = 0
+    resets, wall = 0, 0.0
     with watch_stages(env) as clock:
         clock.reset()
-        t0 = time.perf_counter()
         for _ in range(steps):
-            _, _, done, _ = env.step(meter.actions())
+            actions = meter.actions()
+            t0 = time.perf_counter()
+            _, _, done, _ = env.step(actions)
+            wall += time.perf_counter() - t0
             resets += int(done.sum())
-        wall = time.perf_counter() - t0
     return _row(steps, env.num_envs, wall, resets, stage_seconds(clock, wall), "wrapped")
 
 
@@ -428,14 +430,15 @@ class StepMeter:
 
     def run(self, steps: int) -> None:
         """Time ``steps`` more steps, adding the env's own stage timings."""
-        t0 = time.perf_counter()
         for _ in range(steps):
-            _, _, done, _ = self.env.step(self.actions())
+            actions = self.actions()  # the policy's time is not the env's
+            t0 = time.perf_counter()
+            _, _, done, _ = self.env.step(actions)
+            self.wall += time.perf_counter() - t0
             self.resets += int(done.sum())
             timings = reported_timings(self.env) or {}
             for stage, key in STEP_TIMING_KEYS.items():
                 self.seconds[stage] += float(timings.get(key, 0.0))
-        self.wall += time.perf_counter() - t0
         self.steps += steps
 
     def row(self) -> dict[str, Any]:
