@@ -48,6 +48,30 @@ def test_hooks_are_pure(envs, name):
         assert torch.equal(value, after[key]), f"{name}: a hook changed {key}"
 
 
+@pytest.mark.parametrize("name", ["navigation", "hover"])
+def test_precompute_while_rendering_changes_no_result(envs, name, monkeypatch):
+    """The state-only terms computed while the workers render (``precompute``) are the ones the hooks
+    would compute: the same seeded rollout with and without it gives the same steps."""
+    env = envs(name)
+
+    def rollout():
+        env.seed(7)
+        out = [env.reset()]
+        rng = np.random.default_rng(3)
+        for _ in range(6):
+            obs, reward, done, _ = env.step(rng.uniform(-0.5, 0.5, (env.num_envs, 4)).astype(np.float32) + hover(env))
+            out += [obs, {"reward": reward, "done": done}]
+        return out
+
+    with_it = rollout()
+    monkeypatch.setattr(type(env), "precompute", lambda self: None)
+    without = rollout()
+    for a, b in zip(with_it, without, strict=True):
+        assert sorted(a) == sorted(b)
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name}: {key} differs with precompute")
+
+
 def test_racing_advances_only_in_update_task_state(envs):
     env = envs("racing")
     env.reset()

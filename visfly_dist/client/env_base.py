@@ -241,6 +241,12 @@ class DroneEnvBase(VecEnv):
         unchanged for the others, and event counters must advance only where ``step_mask`` is set.
         """
 
+    def precompute(self) -> None:
+        """Hook: compute, while the workers render, what this step's task hooks need from the state
+        alone, into caches keyed on the state object (so the hooks stay pure and give the same
+        result without it). Called once the step's request is on the wire."""
+        DroneEnvBase.out_of_bounds(self)  # the scene-box part, which tasks extend
+
     # ----- helpers for tasks --------------------------------------------------------------------
 
     def state_vector(self, origin: torch.Tensor | None = None) -> torch.Tensor:
@@ -307,6 +313,7 @@ class DroneEnvBase(VecEnv):
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
                                         sim_time=sim_time)
+        self.precompute()  # the workers render meanwhile
         return _InFlight(ticket, group, members, held, full, spawn_agents, t0, t1 - t0, sim_time)
 
     def _finish(self, flight: _InFlight) -> StepResult:

@@ -159,6 +159,10 @@ class NavigationEnv(DroneEnvBase):
             cached = self._geometry = (*key, _GoalGeometry.of(self.state, self.goal))
         return cached[3]
 
+    def precompute(self) -> None:
+        super().precompute()
+        self._goal_geometry()
+
     def get_observation(self) -> dict[str, torch.Tensor]:
         g = self._goal_geometry()
         target = torch.cat((body_from_rotmat(g.rotmat, g.direction), g.distance[:, None]), dim=1)
