@@ -97,23 +97,36 @@ class NavigationConfig(EnvConfig):
 
 @dataclass(frozen=True)
 class _GoalGeometry:
-    """Terms several navigation hooks share, of one state.
+    """Terms several navigation hooks share, of one state (none depends on what the workers saw).
 
     Attributes:
         distance: ``(N,)`` distance to the goal, m.
         direction: ``(N, 3)`` unit vector to the goal (world frame).
         rotmat: ``(N, 3, 3)`` body-to-world rotations (column 0: the body +x axis).
+        target: ``(N, 4)`` the ``target`` observation: the goal's direction in the body frame, then its distance.
+        speed: ``(N,)`` m/s.
+        spin: ``(N,)`` body rate norm, rad/s.
+        heading: ``(N,)`` cosine of the angle between the body +x axis and the goal direction.
     """
 
     distance: torch.Tensor
     direction: torch.Tensor
     rotmat: torch.Tensor
+    target: torch.Tensor
+    speed: torch.Tensor
+    spin: torch.Tensor
+    heading: torch.Tensor
 
     @classmethod
     def of(cls, state: QuadState, goal: torch.Tensor) -> "_GoalGeometry":
         offset = goal - state.pos
         distance = torch.linalg.vector_norm(offset, dim=1)
-        return cls(distance, offset / distance.clamp(min=1e-6)[:, None], quat_to_rotmat(state.quat))
+        direction = offset / distance.clamp(min=1e-6)[:, None]
+        rotmat = quat_to_rotmat(state.quat)
+        return cls(distance, direction, rotmat,
+                   target=torch.cat((body_from_rotmat(rotmat, direction), distance[:, None]), dim=1),
+                   speed=torch.linalg.vector_norm(state.vel, dim=1), spin=torch.linalg.vector_norm(state.omega, dim=1),
+                   heading=(rotmat[..., 0] * direction).sum(dim=1))
 
 
 class NavigationEnv(DroneEnvBase):
@@ -164,9 +177,7 @@ class NavigationEnv(DroneEnvBase):
         self._goal_geometry()
 
     def get_observation(self) -> dict[str, torch.Tensor]:
-        g = self._goal_geometry()
-        target = torch.cat((body_from_rotmat(g.rotmat, g.direction), g.distance[:, None]), dim=1)
-        return {"state": self.state_vector(self.goal), "target": target, **self.frame.images}
+        return {"state": self.state_vector(self.goal), "target": self._goal_geometry().target, **self.frame.images}
 
     def get_success(self) -> torch.Tensor:
         return self.goal_distance().detach() < self.config.success_radius
@@ -174,13 +185,11 @@ class NavigationEnv(DroneEnvBase):
     def get_reward(self) -> torch.Tensor:
         s, cfg, g = self.state, self.config, self._goal_geometry()
         proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
-        speed, spin = torch.linalg.vector_norm(s.vel, dim=1), torch.linalg.vector_norm(s.omega, dim=1)
         if cfg.reward == "visfly":
-            common = -0.002 * speed - 0.002 * spin - 0.01 * proximity
+            common = -0.002 * g.speed - 0.002 * g.spin - 0.01 * proximity
             return common + self._visfly_terms(approach, g)
         progress = progress_speed(self._prev_distance, g.distance, cfg.ctrl_dt)
-        heading = (g.rotmat[..., 0] * g.direction).sum(dim=1)  # cos of the angle between body +x and the goal
-        terms = torch.stack((speed, spin, proximity, progress, heading, approach, self.success.float(),
+        terms = torch.stack((g.speed, g.spin, proximity, progress, g.heading, approach, self.success.float(),
                              self.failure.float()), dim=1)
         weights = (-0.002, -0.002, -0.01, 0.05, 0.01, -0.05, cfg.success_bonus, -cfg.fail_penalty)
         return terms @ torch.tensor(weights, dtype=terms.dtype, device=terms.device)  # one op, not fifteen
