@@ -3,7 +3,9 @@ run off the serving thread, every bound gives a typed error reply with its code.
 
 from __future__ import annotations
 
+import os
 import re
+import threading
 
 import numpy as np
 import pytest
@@ -159,3 +161,27 @@ def test_a_repeated_step_sees_scenes_unloaded_reloaded_and_re_cameraed_in_betwee
     assert _call(worker, _load("b"))[0]
     ok, reply = _call(worker, both)
     assert ok and reply["counts"].tolist() == [2, 2] and reply["images"]["depth"].shape == (4, 1, 12, 16)
+
+
+def test_loads_after_the_first_step_run_below_the_serving_thread(make_worker, monkeypatch):
+    """Start-up loads keep the worker's priority; loads that arrive while steps are served (swaps,
+    rebalancing) run niced, so generating a scene does not slow the steps' rendering."""
+    from visfly_dist.scene_worker import service
+
+    niceness = {}
+    prepare = service.prepare_scene
+
+    def recording(request, *args):
+        niceness[request.scene_key] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        return prepare(request, *args)
+
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    if own >= service.BACKGROUND_LOAD_NICE:
+        pytest.skip(f"the tests already run at niceness {own}")
+    monkeypatch.setattr(service, "prepare_scene", recording)
+    worker = make_worker()
+    assert _call(worker, _load("before"))[0]
+    ok, reply = _call(worker, StepRequest((ScenePoses("before", np.array([[1, 0, 1, 1, 0, 0, 0]], np.float32)),)).to_message())
+    assert ok, reply
+    assert _call(worker, _load("after"))[0]
+    assert niceness == {"before": own, "after": service.BACKGROUND_LOAD_NICE}
