@@ -72,14 +72,19 @@ def test_time_limit_truncates_and_terminal_observation_is_the_one_before_reset(e
         assert set(term) == set(env.observation_space.spaces)
 
 
-def test_success_terminates_only_that_agent(env):
+def _step_with_success(env, agent: int):
+    """Reset, take one step, then a step where ``agent`` succeeds; that step's result."""
     env.reset()
     env.step(hover(env))
-    env.force_success[1] = True
+    env.force_success[agent] = True
     try:
-        obs, _, done, infos = env.step(hover(env))
+        return env.step(hover(env))
     finally:
         env.force_success[:] = False
+
+
+def test_success_terminates_only_that_agent(env):
+    obs, _, done, infos = _step_with_success(env, 1)
     assert done.tolist() == [False, True, False, False]
     assert infos[1]["is_success"] is True and infos[1]["TimeLimit.truncated"] is False
     assert infos[1]["terminal_observation"]["step"][0] == 2 and obs["step"][1, 0] == 0
@@ -89,13 +94,7 @@ def test_success_terminates_only_that_agent(env):
 
 
 def test_terminal_observation_copies_only_the_done_rows(env):
-    env.reset()
-    env.step(hover(env))
-    env.force_success[2] = True
-    try:
-        obs, _, _, infos = env.step(hover(env))
-    finally:
-        env.force_success[:] = False
+    obs, _, _, infos = _step_with_success(env, 2)
     term = infos[2]["terminal_observation"]
     for key, row in term.items():
         assert row.base is None or row.base.shape[0] == 1, f"{key}: a view into every agent's rows"

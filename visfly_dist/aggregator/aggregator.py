@@ -70,6 +70,12 @@ def _observation(cameras: Sequence[CameraSpec], n: int, images: dict[str, np.nda
     return obs
 
 
+def _reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:
+    """The per-agent arrays of a step reply (images per camera), cut to ``rows``."""
+    return {k: (v[rows] if k != "images" else {c: img[rows] for c, img in v.items()})
+            for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
+
+
 def is_unknown_scene(err: RemoteError) -> bool:
     """The worker does not hold a scene key we sent: it restarted since the scene was loaded."""
     return err.code == ErrorCode.UNKNOWN_SCENE
@@ -368,13 +374,11 @@ class Aggregator:
             message = reply.message
             n_obs = len(part.obs_rows)
             worker_timings.append(dict(message.get("timings", {})))
-            head = {k: (v[:n_obs] if k != "images" else {c: img[:n_obs] for c, img in v.items()})
-                    for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
-            tail = {k: (v[n_obs:] if k != "images" else {c: img[n_obs:] for c, img in v.items()})
-                    for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
-            scatter_reply(ticket.obs, part.obs_rows, head, self.cameras, reply.worker_id, in_place)
+            scatter_reply(ticket.obs, part.obs_rows, _reply_rows(message, slice(None, n_obs)), self.cameras,
+                          reply.worker_id, in_place)
             if len(part.spawn_rows):
-                scatter_reply(ticket.spawn_obs, part.spawn_rows, tail, self.cameras, reply.worker_id, in_place)
+                scatter_reply(ticket.spawn_obs, part.spawn_rows, _reply_rows(message, slice(n_obs, None)), self.cameras,
+                              reply.worker_id, in_place)
         if step is not None:
             self._release_images(ticket, step, failed)
         stale = np.flatnonzero(ticket.obs.lost)

@@ -101,6 +101,10 @@ def _renderer(request: LoadScene, scene: Scene, backend: str, threads: int | Non
         raise SceneError(f"this worker cannot render scene {request.scene_key!r}: {exc}") from None
 
 
+_NO_LOOKUP: tuple[tuple[str, ...], tuple, bool] = ((), (), True)
+"""``SceneTable``'s remembered lookup when there is none (no keys, no scenes)."""
+
+
 class SceneTable:
     """Loaded scenes by key, and the keys whose load is in progress.
 
@@ -112,11 +116,11 @@ class SceneTable:
         self._scenes: dict[str, LoadedScene] = {}
         self._loading: dict[str, Any] = {}
         # The last lookup()'s keys and answer; any change to the loaded scenes clears it.
-        self._last: tuple[tuple[str, ...], tuple[LoadedScene, ...], bool] = ((), (), True)
+        self._last: tuple[tuple[str, ...], tuple[LoadedScene, ...], bool] = _NO_LOOKUP
 
     def put(self, loaded: LoadedScene) -> None:
         """Add a scene, replacing (and closing) one loaded under the same key."""
-        self._last = ((), (), True)
+        self._last = _NO_LOOKUP
         old = self._scenes.pop(loaded.key, None)
         self._scenes[loaded.key] = loaded
         if old is not None:
@@ -159,7 +163,7 @@ class SceneTable:
         Returns:
             The token of the load in progress that was dropped, or ``None``.
         """
-        self._last = ((), (), True)
+        self._last = _NO_LOOKUP
         job = self._loading.pop(key, None)
         if job is None or key in self._scenes:
             self.get(key).renderer.close()
@@ -201,7 +205,7 @@ class SceneTable:
 
     def close(self) -> None:
         """Close every renderer; the table is empty afterwards. Idempotent."""
-        self._last = ((), (), True)
+        self._last = _NO_LOOKUP
         self._loading.clear()
         while self._scenes:
             _, loaded = self._scenes.popitem()
