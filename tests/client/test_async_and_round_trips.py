@@ -89,6 +89,23 @@ def test_send_recv_returns_groups_and_matches_the_synchronous_step(env):
         env.send(hover, [4, 5])
 
 
+def test_a_reset_drops_the_groups_in_flight_and_a_step_refuses_them(env):
+    env.seed(3)
+    env.reset()
+    hover = torch.as_tensor(np.tile(env.quad.hover_action().numpy(), (2, 1)))
+    env.send(hover, [0, 1])
+    with pytest.raises(ConfigError, match="step\\(\\) while 1 group"):
+        env.step(np.tile(env.quad.hover_action().numpy(), (4, 1)))
+    with pytest.raises(ConfigError, match="reset_some\\(\\) while 1 group"):
+        env.reset_some(np.array([True, False, False, False]))
+    obs = env.reset()  # the group in flight never happened
+    assert env.episode_step.tolist() == [0, 0, 0, 0]
+    with pytest.raises(ConfigError, match="without a send"):
+        env.recv()
+    fresh = env.aggregator.observe(env.state.pose().detach().numpy())  # where the agents now stand
+    np.testing.assert_array_equal(obs["depth"], fresh.images["depth"])
+
+
 def test_groups_stepped_in_turn_share_one_clock():
     env = make_counter(num_envs=4, max_episode_steps=50, pool=small_pool(workers=2))
     try:

@@ -96,12 +96,19 @@ def test_seed_lists_seed_every_sub_env_and_are_checked(vec_env):
     view = vec_env.as_gymnasium()
     a, _ = view.reset(seed=[1, 2])
     assert view.np_random_seed is not None and view.np_random_seed >= 0
+    view.step(view.action_space.sample())  # a history in between changes nothing
     b, _ = view.reset(seed=[1, 2])
-    c, _ = view.reset(seed=[1, 3])  # the second seed matters too
+    c, _ = view.reset(seed=[1, 3])
     np.testing.assert_array_equal(a["state"], b["state"])
-    assert not np.array_equal(a["state"], c["state"])
+    np.testing.assert_array_equal(a["state"][0], c["state"][0])  # sub-env 0 follows its own seed only
+    assert not np.array_equal(a["state"][1], c["state"][1])
+    d, _ = view.reset(seed=1)  # an int s seeds sub-env i with s + i, as Gymnasium's vector envs do
+    np.testing.assert_array_equal(a["state"], d["state"])
+    assert view.np_random_seed == 1
     with pytest.raises(ValueError, match="one seed per sub-env: num_envs=2, got length 3"):
         view.reset(seed=[1, 2, 3])
+    with pytest.raises(ValueError, match="non-negative int, got -1"):
+        view.reset(seed=[1, -1])
 
 
 def test_reset_mask_resets_only_the_masked_sub_envs(vec_env):
@@ -112,6 +119,22 @@ def test_reset_mask_resets_only_the_masked_sub_envs(vec_env):
     assert obs["step"][:, 0].tolist() == [1, 0]
     with pytest.raises(ValueError, match="reset_mask"):
         view.reset(options={"reset_mask": np.array([False, False])})
+
+
+def test_a_seeded_masked_reset_is_reproducible_and_does_not_come_back(vec_env):
+    view, mask = vec_env.as_gymnasium(), np.array([False, True])
+    view.reset(seed=0)
+    view.step(view.action_space.sample())
+    x, _ = view.reset(seed=11, options={"reset_mask": mask})
+    view.reset(seed=99)
+    for _ in range(2):
+        view.step(view.action_space.sample())
+    y, _ = view.reset(seed=11, options={"reset_mask": mask})
+    np.testing.assert_array_equal(x["state"][1], y["state"][1])  # the same seed, another history
+    full, _ = view.reset(seed=[5, 12])
+    np.testing.assert_array_equal(full["state"][1], x["state"][1])  # seed 11 gives sub-env 1 the seed 12
+    again, _ = view.reset()  # an unseeded reset does not reuse the masked reset's seed
+    assert not np.array_equal(again["state"], full["state"])
 
 
 def test_gymnasium_vector_wrappers_accept_the_view(vec_env):

@@ -58,6 +58,32 @@ MAX_CACHED_PLANS = 8
 __all__ = ["Aggregator", "Observation", "StepTicket"]
 
 
+def counter_draws(keys: np.ndarray, counters: np.ndarray) -> np.ndarray:
+    """One uniform 64-bit draw per ``(key, counter)`` pair (uint64 arrays): splitmix64 over both,
+    so a stream is a pure function of its key and position, whatever other streams did."""
+    with np.errstate(over="ignore"):
+        z = _splitmix64(_splitmix64(keys.astype(np.uint64)) ^ counters.astype(np.uint64))
+    return z
+
+
+def _occurrence(values: np.ndarray) -> np.ndarray:
+    """``(k,)`` uint64: how many times each entry's value came earlier in ``values``."""
+    order = np.argsort(values, kind="stable")
+    ordered = values[order]
+    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    rank = np.arange(len(values)) - np.repeat(starts, np.diff(np.r_[starts, len(values)]))
+    out = np.empty(len(values), dtype=np.uint64)
+    out[order] = rank
+    return out
+
+
+def _splitmix64(z: np.ndarray) -> np.ndarray:
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
 def _increasing(agents: np.ndarray) -> bool:
     return len(agents) < 2 or bool((agents[1:] > agents[:-1]).all())
 
@@ -176,7 +202,9 @@ class Aggregator:
         self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]] = {}
         self._plans_revision = -1
         self._settled: tuple[int, tuple] | None = None  # (table revision, live generations) of a pass with nothing to do
-        self._rng = np.random.default_rng(self.seed)
+        self._spawn_seed = np.zeros(self.num_agents, dtype=np.uint64)  # per agent: its spawn draws' stream
+        self._spawn_count = np.zeros(self.num_agents, dtype=np.uint64)  # per agent: draws since its reseed
+        self.reseed(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
         self._images = ImageSegments(self.run_id, cameras) if pool.shared_memory else None
         self._started = False
@@ -622,7 +650,8 @@ class Aggregator:
         """Free positions for ``agents``, ``(k, 3)`` float64, drawn locally from per-scene pools.
 
         Each (scene, distribution) pool of ``max(256, 8 * agents_per_scene)`` positions is sampled
-        by the scene's worker; draws use this aggregator's seeded generator. A pool is refreshed
+        by the scene's worker. Each agent draws from its own stream (:meth:`reseed`), so its starts
+        do not depend on the other agents' resets. A pool is refreshed
         with fresh samples in the background once half of it has been drawn, and replaced when
         all of it has (at a draw count, not a time, so the same seed gives the same positions).
         Only the very first draw from a scene waits for its pool.
@@ -634,7 +663,8 @@ class Aggregator:
         missing = [s for s in slots if self._pool_key(s, spec) not in self._spawn_pools]
         if missing:
             self._fetch_spawn_pools_now(missing, spec)
-        draws = self._rng.integers(0, 2**31 - 1, size=len(agents))
+        draws = counter_draws(self._spawn_seed[agents], self._spawn_count[agents] + _occurrence(agents))
+        np.add.at(self._spawn_count, agents, np.uint64(1))  # an agent listed twice draws twice
         out = np.empty((len(agents), 3), dtype=np.float64)
         slot_of = self.agent_scene[agents]
         for slot in slots:
@@ -715,9 +745,18 @@ class Aggregator:
             self._place_all_now()
         raise NoWorkersError(f"run {self.run_id!r}: no worker could sample spawn positions for slots {slots}")
 
-    def reseed(self, seed: int) -> None:
-        """Restart the spawn draws from ``seed`` (the per-scene pools stay as they are)."""
-        self._rng = np.random.default_rng(int(seed))
+    def reseed(self, seeds: int | Sequence[int], agents: np.ndarray | None = None) -> None:
+        """Restart the spawn draws of ``agents`` (default: all): agent ``agents[i]`` draws from
+        ``seeds[i]``; an int ``seed`` gives agent ``a`` the seed ``seed + a`` (as Gymnasium and SB3 seed
+        sub-envs). The per-scene pools stay as they are."""
+        agents = self._agent_index(agents)
+        if np.ndim(seeds) == 0:
+            seeds = int(seeds) + agents
+        seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
+        if len(seeds) != len(agents):
+            raise ConfigError(f"reseed: {len(seeds)} seeds for {len(agents)} agents")
+        self._spawn_seed[agents] = seeds.astype(np.uint64)
+        self._spawn_count[agents] = 0
 
     @staticmethod
     def _spawn_spec(distribution: str, a: Sequence[float], b: Sequence[float], clearance: float) -> tuple:

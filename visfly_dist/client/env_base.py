@@ -279,6 +279,7 @@ class DroneEnvBase(VecEnv):
                 NEXT_STEP autoreset uses it for the step that returns a reset agent's first view.
         """
         self._check_open()
+        self._check_no_flight("step()")
         if self.frame is None:
             self.reset()
         with torch.set_grad_enabled(self.config.requires_grad):
@@ -509,10 +510,13 @@ class DroneEnvBase(VecEnv):
     # ----- SB3 VecEnv ---------------------------------------------------------------------------
 
     def reset(self) -> dict[str, np.ndarray]:
-        """Reset every agent (seeded by the last ``seed()`` call, if any); numpy observation."""
+        """Reset every agent (seeded by the last ``seed()`` call, if any); numpy observation.
+
+        Groups still in flight (:meth:`send`) are taken in and dropped: their step never happened."""
         self._check_open()
+        self._drop_in_flight()
         if self._seeds[0] is not None:
-            self._reseed(int(self._seeds[0]))
+            self._reseed(self._seeds)
         self._reset_seeds()
         self._reset_options()
         with torch.set_grad_enabled(self.config.requires_grad):
@@ -523,22 +527,45 @@ class DroneEnvBase(VecEnv):
         self.reset_infos = [{} for _ in range(self.num_envs)]
         return self.to_numpy(obs)
 
-    def reset_some(self, mask: torch.Tensor | np.ndarray) -> dict[str, np.ndarray]:
-        """Reset only the agents in ``mask`` (``(N,)`` bool); the numpy observation of every agent."""
+    def reset_some(self, mask: torch.Tensor | np.ndarray, seeds: Sequence[int] | None = None) -> dict[str, np.ndarray]:
+        """Reset only the agents in ``mask`` (``(N,)`` bool); the numpy observation of every agent.
+
+        ``seeds``: one per agent of ``mask`` (in index order): each restarts from its own seed, so
+        the same seeds give the same starts whatever happened before.
+        """
         self._check_open()
+        self._check_no_flight("reset_some()")
         mask = torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
         if mask.shape != (self.num_envs,):
             raise ConfigError(f"reset mask of shape {tuple(mask.shape)} must be ({self.num_envs},)")
         if self.frame is None:
             return self.reset()
+        if seeds is not None:
+            idx = mask.nonzero().squeeze(1)
+            self._reseed(seeds, idx.cpu().numpy())
+            self._draw_next_starts(idx)  # from the new streams, not the starts drawn before
         with torch.set_grad_enabled(self.config.requires_grad):
             return self.to_numpy(self._reset_agents(mask, self._observation()))
 
-    def _reseed(self, seed: int) -> None:
-        self.generator.manual_seed(seed)
-        self.aggregator.reseed(seed)
-        self.sim_time = 0.0   # the same seed starts the moving obstacles from the same places
-        self._steps_sent[:] = 0
+    def _reseed(self, seeds: Sequence[int], agents: np.ndarray | None = None) -> None:
+        """Restart the random streams: the spawn draws of agent ``agents[i]`` (default: every agent)
+        from ``seeds[i]``, the noise generator from all of ``seeds``. The moving obstacles' clock,
+        which every agent shares, restarts when every agent is reseeded."""
+        seeds = [int(s) for s in seeds]
+        self.generator.manual_seed(combined_seed(seeds))
+        self.aggregator.reseed(seeds, agents)
+        if agents is None or len(agents) == self.num_envs:
+            self.sim_time = 0.0   # the same seed starts the moving obstacles from the same places
+            self._steps_sent[:] = 0
+
+    def _check_no_flight(self, what: str) -> None:
+        if self._in_flight:
+            raise ConfigError(f"{what} while {len(self._in_flight)} group(s) sent with send() are in flight; recv() them first")
+
+    def _drop_in_flight(self) -> None:
+        """Take in the groups in flight and forget them (their image segments are released)."""
+        while self._in_flight:
+            self.aggregator.collect(self._in_flight.pop(0).ticket)
 
     def step_async(self, actions: np.ndarray) -> None:
         self._pending_actions = torch.as_tensor(np.asarray(actions), dtype=torch.float32, device=self.device)
@@ -628,9 +655,11 @@ class DroneEnvBase(VecEnv):
     def _get_indices(self, indices: Any) -> Iterable[int]:
         if indices is None:
             return range(self.num_envs)
-        if isinstance(indices, (int, np.integer)):
-            return [int(indices)]
-        return [int(i) for i in indices]
+        out = [int(indices)] if isinstance(indices, (int, np.integer)) else [int(i) for i in indices]
+        bad = [i for i in out if not -self.num_envs <= i < self.num_envs]
+        if bad:
+            raise IndexError(f"env indices {bad} out of range for num_envs={self.num_envs}")
+        return out
 
     # ----- other views ---------------------------------------------------------------------------
 
@@ -656,3 +685,8 @@ def camera_space(cam: CameraSpec) -> spaces.Box:
     if cam.kind == "rgb":
         return spaces.Box(0, 255, cam.shape, np.uint8)
     return spaces.Box(0, np.iinfo(np.uint16).max, cam.shape, np.uint16)
+
+
+def combined_seed(seeds: Sequence[int]) -> int:
+    """One non-negative 63-bit seed from several (each entry changes it; the same list gives the same)."""
+    return int(np.random.SeedSequence([s & (2**64 - 1) for s in seeds]).generate_state(1, np.uint64)[0] >> np.uint64(1))

@@ -21,6 +21,7 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from visfly_dist.client.env_base import combined_seed
 from visfly_dist.errors import ConfigError
 
 _SB3_ONLY_KEYS = ("terminal_observation", "TimeLimit.truncated", "episode")
@@ -42,10 +43,12 @@ class GymnasiumVectorView(VectorEnv):
             ``SAME_STEP``: the returned observation is already the next episode's first, the last
             one is in ``infos["final_obs"]`` (SB3's semantics under Gymnasium's names).
 
-    ``reset(seed=...)`` takes an int or one seed per agent (a list of length ``num_envs``; ``None``
-    entries draw fresh entropy). The agents share one batched state and generator, so the list is
-    combined into one seed: the same list gives the same episodes. ``options={"reset_mask": m}``
-    resets only the agents where the bool array ``m`` is True.
+    ``reset(seed=...)`` takes an int ``s`` (sub-env ``i`` gets ``s + i``, as in Gymnasium's own vector
+    envs) or one seed per sub-env (a list of length ``num_envs``; ``None`` entries draw fresh
+    entropy). A sub-env's starts follow its own seed only, whatever the others' seeds or histories.
+    Sensor noise is drawn for all sub-envs at once, from one generator seeded by the whole list.
+    ``options={"reset_mask": m}`` resets only the sub-envs where the bool array ``m`` is True (and
+    a seed then reseeds only those).
     """
 
     def __init__(self, env: Any, autoreset_mode: AutoresetMode = AutoresetMode.NEXT_STEP) -> None:
@@ -70,22 +73,29 @@ class GymnasiumVectorView(VectorEnv):
             if mask.dtype != np.bool_ or mask.shape != (self.num_envs,) or not mask.any():
                 raise ValueError(f"options['reset_mask'] must be a bool array of shape ({self.num_envs},) with at "
                                  f"least one True, got dtype {mask.dtype} shape {mask.shape}")
+        seeds = self._seed_list(seed)
+        if seeds is not None:
+            self._np_random_seed = seed if isinstance(seed, int) else combined_seed(seeds)
+            self._np_random = np.random.default_rng(self._np_random_seed)
+        if mask is None:
+            self._autoreset[:] = False
+            if seeds is not None:
+                self.env._reseed(seeds)
+            return self.env.reset(), {}
+        self._autoreset[mask] = False
+        return self.env.reset_some(mask, None if seeds is None else [seeds[i] for i in np.flatnonzero(mask)]), {}
+
+    def _seed_list(self, seed: int | list[int | None] | None) -> list[int] | None:
+        """One seed per sub-env: ``seed + i`` for an int (as Gymnasium's own vector envs do), the
+        list's entries (``None``: fresh entropy) for a list; ``None`` for no seed."""
+        if seed is None:
+            return None
         if isinstance(seed, (list, tuple)):
             if len(seed) != self.num_envs:
                 raise ValueError(f"a seed list must have one seed per sub-env: num_envs={self.num_envs}, "
                                  f"got length {len(seed)}")
-            entropy = [int(s) if s is not None else secrets.randbits(63) for s in seed]
-            seed = int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0] >> np.uint64(1))
-        if seed is not None:
-            self._np_random, self._np_random_seed = np.random.default_rng(int(seed)), int(seed)
-            self.env.seed(int(seed))
-        if mask is None:
-            self._autoreset[:] = False
-            return self.env.reset(), {}
-        self._autoreset[mask] = False
-        if seed is not None:
-            self.env._reseed(int(seed))
-        return self.env.reset_some(mask), {}
+            return [_checked_seed(s) if s is not None else secrets.randbits(63) for s in seed]
+        return [_checked_seed(seed) + i for i in range(self.num_envs)]
 
     def step(self, actions: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         env = self.env
@@ -124,6 +134,12 @@ class GymnasiumVectorView(VectorEnv):
 
     def close_extras(self, **kwargs: Any) -> None:
         self.env.close()
+
+
+def _checked_seed(seed: Any) -> int:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"a seed must be a non-negative int, got {seed!r}")
+    return int(seed)
 
 
 class SingleAgentView(gymnasium.Env):
