@@ -154,6 +154,8 @@ def test_sb3_wrappers_step(env):
 def test_vec_env_attribute_methods(env):
     assert env.get_attr("num_envs") == [4, 4, 4, 4]
     assert env.get_attr("num_envs", indices=[1, 2]) == [4, 4]
+    with pytest.raises(IndexError, match=r"env indices \[4\] out of range for num_envs=4"):
+        env.get_attr("num_envs", indices=[0, 4])
     assert env.env_is_wrapped(object) == [False] * 4
     assert env.env_method("out_of_bounds", indices=0)[0].shape == (4,)
     env.set_attr("custom_flag", 1)
