@@ -1,7 +1,8 @@
 """SB3 callbacks of a training run: success rate and returns, progress lines, the success curve.
 
 ``SuccessCallback`` reads finished episodes from the step infos (``info["episode"]`` from
-``VecMonitor``, ``info["is_success"]`` from the task), keeps the last ``window`` of them, and at the
+``VecMonitor``, ``info["is_success"]`` from the task), keeps the last ``window`` of them (an
+episode cut because its worker was lost counts only among the end causes), and at the
 end of every rollout logs ``charts/success_rate``, ``charts/mean_return``, ``charts/mean_length`` and
 ``charts/steps_per_second`` and, per end cause (see :mod:`visfly_dist.tasks.outcomes`), the share
 of the window's episodes that ended so as ``ends/<cause>``; it appends a row to
@@ -43,6 +44,7 @@ class SuccessCallback(BaseCallback):
         self.episodes: deque[tuple[float, float, float]] = deque(maxlen=window)
         self.causes: deque[str] = deque(maxlen=window)
         self.episodes_total = 0
+        self.lost_total = 0  # episodes cut because their worker was lost (not in the figures above)
         self.print_every_s = print_every_s
         self.csv_path = self.run_dir / "success_curve.csv"
         self._t0 = 0.0
@@ -59,8 +61,12 @@ class SuccessCallback(BaseCallback):
         for done, info in zip(self.locals["dones"], self.locals["infos"]):
             if done and "episode" in info:
                 ep = info["episode"]
+                cause = end_cause(info, int(ep["l"]), self._max_episode_steps())
+                self.causes.append(cause)
+                if cause == "lost":  # cut by a failed worker or link: neither a success nor a failure
+                    self.lost_total += 1
+                    continue
                 self.episodes.append((float(bool(info.get("is_success", False))), float(ep["r"]), float(ep["l"])))
-                self.causes.append(end_cause(info, int(ep["l"]), self._max_episode_steps()))
                 self.episodes_total += 1
         return True
 
@@ -102,10 +108,11 @@ class SuccessCallback(BaseCallback):
             eta = (self.total - self.num_timesteps) / max(sps, 1e-9)
             top = sorted(((v, c) for c, v in shares.items() if v > 0), reverse=True)[:2]
             ends = ", ".join(f"{c} {v:.2f}" for v, c in top)
+            lost = f" (+{self.lost_total} lost)" if self.lost_total else ""
             print(
                 f"[{self.num_timesteps:>9,}/{self.total:,}] {sps:6.0f} steps/s  "
                 f"success {s['success_rate']:.2f}  return {s['mean_return']:8.2f}  "
-                f"length {s['mean_length']:6.1f}  episodes {self.episodes_total}  eta {eta / 60:5.1f} min  ends: {ends}",
+                f"length {s['mean_length']:6.1f}  episodes {self.episodes_total}{lost}  eta {eta / 60:5.1f} min  ends: {ends}",
                 flush=True,
                 file=sys.stdout,
             )
