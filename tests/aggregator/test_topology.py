@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -60,6 +61,26 @@ def test_runs_on_one_router_stay_apart_without_shared_memory(router, scene_root)
         a.close()
         b.close()
         stop_process(remote)
+
+
+def test_a_replacement_skips_a_local_id_a_remote_worker_took(router, scene_root):
+    agg = make_aggregator(pool={"connect": (router,), "num_local_workers": 1, "run_id": "run-ids", "respawn": True},
+                          scenes=SCENES)
+    remote = None
+    try:
+        agg.start()
+        remote = start_worker("run-ids", router, scene_root, connect=True, worker_id="local-1")  # the next local id
+        assert wait_for(lambda: "local-1" in agg.workers, timeout=30)
+        os.kill(agg.local_worker_pids()["local-0"], signal.SIGKILL)
+        poses = spawn_poses(agg)
+        assert wait_for(lambda: (agg.observe(poses), "local-2" in agg.workers)[1], timeout=30), agg.workers
+        assert sorted(agg.local_worker_pids()) == ["local-2"]
+        logs = sorted(p.name for p in Path(agg._pool._log_dir).glob("local-*.log"))
+        assert logs == ["local-0.log", "local-2.log"]  # no local worker was started (and refused) as local-1
+    finally:
+        agg.close()
+        if remote is not None:
+            stop_process(remote)
 
 
 def test_launched_pool_restarts_workers_and_the_aggregator_follows(router, scene_root):
