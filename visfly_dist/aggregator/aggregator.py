@@ -62,8 +62,7 @@ def counter_draws(keys: np.ndarray, counters: np.ndarray) -> np.ndarray:
     """One uniform 64-bit draw per ``(key, counter)`` pair (uint64 arrays): splitmix64 over both,
     so a stream is a pure function of its key and position, whatever other streams did."""
     with np.errstate(over="ignore"):
-        z = _splitmix64(_splitmix64(keys.astype(np.uint64)) ^ counters.astype(np.uint64))
-    return z
+        return _splitmix64(_splitmix64(keys.astype(np.uint64)) ^ counters.astype(np.uint64))
 
 
 def _occurrence(values: np.ndarray) -> np.ndarray:

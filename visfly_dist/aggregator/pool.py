@@ -250,10 +250,9 @@ class WorkerPool:
     def spawn_local(self) -> str:
         """Start one more local worker; returns its id (it is live once its token appears)."""
         assert self._launch is not None and self._log_dir is not None, "no local workers configured"
-        wid = f"local-{self._spawned}"
-        while wid in self._alive or wid in self._banned:  # a remote worker may have taken it
+        while f"local-{self._spawned}" in self._alive | self._banned:  # a remote worker may have taken it
             self._spawned += 1
-            wid = f"local-{self._spawned}"
+        wid = f"local-{self._spawned}"
         self._spawned += 1
         worker = LocalWorker(wid, self._launch.argv(wid), f"{self._log_dir}/{wid}.log")
         self._local[wid] = worker

@@ -75,7 +75,7 @@ class GymnasiumVectorView(VectorEnv):
                                  f"least one True, got dtype {mask.dtype} shape {mask.shape}")
         seeds = self._seed_list(seed)
         if seeds is not None:
-            self._np_random_seed = seed if isinstance(seed, int) else combined_seed(seeds)
+            self._np_random_seed = combined_seed(seeds) if isinstance(seed, (list, tuple)) else seeds[0]
             self._np_random = np.random.default_rng(self._np_random_seed)
         if mask is None:
             self._autoreset[:] = False
