@@ -22,7 +22,7 @@ fi
 
 # torch first and pinned: resolving stable-baselines3 first would pull a multi-GB CUDA build.
 "$PY" -m pip install -q --disable-pip-version-check "torch==2.13.0"
-"$PY" -m pip install -q --disable-pip-version-check -e ".[bench,dev]"
+"$PY" -m pip install -q --disable-pip-version-check -e ".[bench,dev,deploy]"
 
 # The native packet tracer (raycast backend) against Debian's Embree 3. Optional: without it the
 # raycast backend uses embreex, slower; set-up goes on and says so.
