@@ -60,15 +60,20 @@ class SuccessCallback(BaseCallback):
     def _on_step(self) -> bool:
         for done, info in zip(self.locals["dones"], self.locals["infos"]):
             if done and "episode" in info:
-                ep = info["episode"]
-                cause = end_cause(info, int(ep["l"]), self._max_episode_steps())
-                self.causes.append(cause)
-                if cause == "lost":  # cut by a failed worker or link: neither a success nor a failure
-                    self.lost_total += 1
-                    continue
-                self.episodes.append((float(bool(info.get("is_success", False))), float(ep["r"]), float(ep["l"])))
-                self.episodes_total += 1
+                self.record_episode(info)
         return True
+
+    def record_episode(self, info: dict) -> None:
+        """Count one finished episode from its last step's info (``episode``: ``r`` and ``l``, the
+        end flags); trainers that do not go through SB3's loop call it directly."""
+        ep = info["episode"]
+        cause = end_cause(info, int(ep["l"]), self._max_episode_steps())
+        self.causes.append(cause)
+        if cause == "lost":  # cut by a failed worker or link: neither a success nor a failure
+            self.lost_total += 1
+            return
+        self.episodes.append((float(bool(info.get("is_success", False))), float(ep["r"]), float(ep["l"])))
+        self.episodes_total += 1
 
     def _max_episode_steps(self) -> int | None:
         config = getattr(self.training_env.unwrapped, "config", None)

@@ -16,7 +16,8 @@ from typing import Any
 from visfly_dist.errors import ConfigError
 
 BACKBONES = ("visfly-cnn", "resnet-tiny")
-ALGOS = ("ppo", "bptt", "shac")
+PPO_ALGOS = ("ppo", "sb3-ppo")
+ALGOS = (*PPO_ALGOS, "bptt", "shac")
 
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # Budgets for about 5-30 minutes on a shared 2-core CPU host (docs/RESULTS.md has what each
@@ -56,7 +57,17 @@ DEFAULT_ALGOS: dict[str, str] = {
     # the whole spawn box after 50k steps, where PPO reached 0.31 after 300k.
     "landing": "bptt",
 }
-"""The algorithm ``visfly-dist train TASK`` uses without ``--algo``; ``ppo`` for tasks not listed."""
+"""The algorithm ``visfly-dist train TASK`` uses without ``--algo``; :func:`default_ppo` for tasks not listed."""
+
+TENSOR_PPO_TASKS: frozenset[str] = frozenset()
+"""Tasks whose default PPO is the tensor trainer (``ppo``): it reached the SB3 trainer's deterministic
+success at the same env steps there (docs/RESULTS.md). The others keep ``sb3-ppo`` until measured."""
+
+
+def default_ppo(task: str) -> str:
+    """``ppo`` (the tensor trainer) where it is validated for ``task``, else ``sb3-ppo``."""
+    return "ppo" if task in TENSOR_PPO_TASKS else "sb3-ppo"
+
 
 GRADIENT_DEFAULTS: dict[str, dict[str, Any]] = {
     "landing": dict(num_envs=8, timesteps=100_000, horizon=16, lr=3e-3),
@@ -164,12 +175,12 @@ class TrainConfig:
 
     def resolved(self) -> "TrainConfig":
         """A copy with the algorithm and the task's defaults for it filled in, and ``out`` set."""
-        algo = self.algo if self.algo is not None else DEFAULT_ALGOS.get(self.task, "ppo")
+        algo = self.algo if self.algo is not None else DEFAULT_ALGOS.get(self.task, default_ppo(self.task))
         defaults = {**COMMON_DEFAULTS, **TASK_DEFAULTS.get(self.task, FALLBACK_DEFAULTS)}
         if algo in ("bptt", "shac"):
             defaults.update(GRADIENT_DEFAULTS.get(self.task, {}))
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
-        overlap = self.overlap if self.overlap is not None else (algo == "ppo" and self.workers == 0)
+        overlap = self.overlap if self.overlap is not None else (algo in PPO_ALGOS and self.workers == 0)
         cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
                       overrides=dict(self.overrides), algo=algo, overlap=overlap, **filled)
         if cfg.out is None:

@@ -22,7 +22,7 @@ import json
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -37,10 +37,12 @@ from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks import make_env, task_class
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
-from visfly_dist.training.config import TrainConfig
+from visfly_dist.host import usable_cores
+from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
+from visfly_dist.training.tensor_ppo import TensorPPO
 
 
 @dataclass
@@ -99,11 +101,18 @@ def build_env(cfg: TrainConfig) -> VecEnv:
 def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
 
-    It is :class:`UpdateThreadsPPO` (plain PPO whose update uses every core while the workers are
-    idle), or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
+    For ``algo="ppo"`` it is plain SB3 ``PPO``, which holds the policy, its optimizer and the
+    hyperparameters for :class:`TensorPPO` (and saves the ``.zip``). For ``"sb3-ppo"`` it is
+    :class:`UpdateThreadsPPO` (plain PPO whose update uses every core while the workers are idle),
+    or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
     """
-    extra = {} if cfg.overlap else {"update_threads": cfg.update_threads}
-    model = (OverlappedPPO if cfg.overlap else UpdateThreadsPPO)(
+    if cfg.algo == "ppo":
+        cls, extra = PPO, {}
+    elif cfg.overlap:
+        cls, extra = OverlappedPPO, {}
+    else:
+        cls, extra = UpdateThreadsPPO, {"update_threads": cfg.update_threads}
+    model = cls(
         "MultiInputPolicy",
         env,
         learning_rate=cfg.lr,
@@ -132,33 +141,43 @@ def write_config(cfg: TrainConfig, run_dir: Path) -> None:
 
 
 def train(cfg: TrainConfig) -> TrainResult:
-    """Run PPO on ``cfg.task``; Ctrl-C stops early, saves ``final.zip`` and closes the env.
+    """Run PPO on ``cfg.task`` (``algo="ppo"``: :class:`TensorPPO`; ``"sb3-ppo"``: SB3's loop);
+    Ctrl-C stops early, saves ``final.zip`` and closes the env.
 
     Raises:
         ConfigError: a bad setting, raised before any worker starts.
     """
-    cfg = replace(cfg, algo="ppo").resolved().validate()
+    cfg = replace(cfg, algo=cfg.algo if cfg.algo in PPO_ALGOS else default_ppo(cfg.task)).resolved().validate()
     torch.set_num_threads(cfg.threads)
     keep_freed_memory()
     run_dir = Path(cfg.out)
-    env = build_env(cfg)
+    tensor = cfg.algo == "ppo"
+    env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)) if tensor else build_env(cfg)
     interrupted = False
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_config(cfg, run_dir)
         model = build_model(cfg, env)
         success = SuccessCallback(run_dir, cfg.timesteps, verbose=int(cfg.progress))
-        callbacks = [success]
-        if cfg.checkpoint_every:
-            callbacks.append(CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every))
+        if tensor:
+            trainer = TensorPPO(model, env, normalize=cfg.normalize, overlap=bool(cfg.overlap),
+                                update_threads=cfg.update_threads, cpu_cores=usable_cores())
+            checkpoints = Checkpoints(run_dir / "checkpoints", cfg.checkpoint_every, trainer.save)
+            learn = lambda: trainer.learn(cfg.timesteps, success, on_rollout_end=checkpoints)  # noqa: E731
+            save, phases = trainer.save, trainer.phase_seconds
+        else:
+            callbacks = [success] + ([CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every)] if cfg.checkpoint_every else [])
+            learn = lambda: model.learn(cfg.timesteps, callback=callbacks, progress_bar=False)  # noqa: E731
+            save, phases = (lambda path: save_checkpoint(model, path)), getattr(model, "phase_seconds", {})
         try:
-            model.learn(cfg.timesteps, callback=callbacks, progress_bar=False)
+            learn()
         except KeyboardInterrupt:
             interrupted = True
             print(f"interrupted at {model.num_timesteps:,} steps; saving the model", file=sys.stderr, flush=True)
-            success.on_training_end()
-        final = save_checkpoint(model, run_dir / "final.zip")
-        summary = {**success.summary(), **getattr(model, "phase_seconds", {})}
+            if not tensor:
+                success.on_training_end()
+        final = save(run_dir / "final.zip")
+        summary = {**success.summary(), **phases}
         result = TrainResult(run_dir, final, model.num_timesteps, interrupted, summary)
     finally:
         env.close()
@@ -169,3 +188,16 @@ def train(cfg: TrainConfig) -> TrainResult:
         flush=True,
     )
     return result
+
+
+class Checkpoints:
+    """``save(folder / "step_<n>.zip")`` each time a rollout ends ``every`` or more env steps after the last one."""
+
+    def __init__(self, folder: Path, every: int, save: Callable[[Path], Any]) -> None:
+        self.folder, self.every, self.save = Path(folder), every, save
+        self._next = every
+
+    def __call__(self, num_timesteps: int) -> None:
+        if self.every and num_timesteps >= self._next:
+            self.save(self.folder / f"step_{num_timesteps}.zip")
+            self._next = (num_timesteps // self.every + 1) * self.every

@@ -1,0 +1,414 @@
+"""PPO on the tensor env, its rollout kept in tensors on the learner's device (``--algo ppo``).
+
+SB3's PPO (``--algo sb3-ppo``) reaches the env through ``VecEnv.step``: numpy observations, one
+info dict per agent, ``VecNormalize`` copying the whole observation dict (images included) every
+step, and a numpy rollout buffer copied to torch for every minibatch. At 256 agents that is most
+of the learner's time per step. Here, as in CleanRL's and LeanRL's PPO, the loop reads top to bottom
+on :meth:`~visfly_dist.client.env_base.DroneEnvBase.step_tensor`:
+
+1. **Act.** The policy (SB3's ``MultiInputActorCriticPolicy`` with our extractors, so checkpoints are
+   SB3 ``.zip`` files that ``eval`` and ``export`` load as before) samples actions for the current,
+   already normalised observation on the learner's device.
+2. **Step.** ``step_tensor`` advances the agents; its observation tensors (the images a view of the
+   workers' shared-memory segment) cross to the device once, straight into the preallocated
+   rollout tensors (``observations[t]``, ``actions[t]``, ``log_probs[t]``, ``values[t]``,
+   ``rewards[t]``, ``dones[t]``).
+3. **Normalise on the device.** Vector entries (``state``, ``target``, ...) and rewards are scaled
+   by running statistics kept as tensors (VecNormalize's formulas: clip 10, epsilon 1e-8, returns
+   discounted by ``gamma``); images are never copied for it. A truncated episode (time limit,
+   scene swap, lost worker) is bootstrapped with the value of its terminal observation, as SB3 does.
+4. **Learn.** GAE on the device, then ``n_epochs`` passes of shuffled minibatches; on a CPU each
+   minibatch is split across threads (:mod:`visfly_dist.training.parallel_update`, the thread
+   count timed by :class:`~visfly_dist.training.threads.UpdateThreadChooser`).
+
+With ``overlap`` (the host plan turns it on where there are cores for it) the agents are split in
+two groups stepped through ``send``/``recv`` (Sample Factory's double-buffered sampling): while the
+workers render one group, the learner takes in the other and runs the policy on it. Both groups
+act on the same policy, so there is no policy lag.
+
+A run writes what the SB3 trainer writes (``config.json``, TensorBoard and ``progress.csv``,
+``success_curve.csv``/``.png``, ``checkpoints/step_<n>.zip`` and ``final.zip`` with ``*.norm.npz``).
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.utils import explained_variance
+
+from visfly_dist.client.env_base import DroneEnvBase
+from visfly_dist.training.callbacks import SuccessCallback
+from visfly_dist.training.checkpoints import save_normalization
+from visfly_dist.training.parallel_update import UpdateSettings, minibatch_gradients
+from visfly_dist.training.threads import UpdateThreadChooser
+
+CLIP_OBS = 10.0
+CLIP_REWARD = 10.0
+EPSILON = 1e-8
+
+
+class RunningMoments:
+    """Running mean and variance of a batch stream (Chan et al.'s parallel update, as SB3's
+    ``RunningMeanStd``), float64 tensors on ``device``."""
+
+    def __init__(self, shape: tuple[int, ...], device: torch.device) -> None:
+        self.mean = torch.zeros(shape, dtype=torch.float64, device=device)
+        self.var = torch.ones(shape, dtype=torch.float64, device=device)
+        self.count = 1e-4
+
+    def update(self, batch: torch.Tensor) -> None:
+        batch = batch.detach().to(torch.float64).reshape(-1, *self.mean.shape)
+        n = batch.shape[0]
+        if n == 0:
+            return
+        batch_mean, batch_var = batch.mean(dim=0), batch.var(dim=0, unbiased=False)
+        delta = batch_mean - self.mean
+        total = self.count + n
+        self.mean = self.mean + delta * n / total
+        m2 = self.var * self.count + batch_var * n + delta.square() * self.count * n / total
+        self.var = m2 / total
+        self.count = total
+
+    def as_numpy(self) -> Any:
+        """Mean, var and count as numpy values (the attributes ``save_normalization`` reads)."""
+        return _Moments(self.mean.cpu().numpy(), self.var.cpu().numpy(), float(self.count))
+
+
+@dataclass
+class _Moments:
+    mean: np.ndarray
+    var: np.ndarray
+    count: float
+
+
+class Normalizer:
+    """Observation and reward normalisation on the device, with VecNormalize's formulas and
+    statistics (saved in the same ``*.norm.npz``, so ``eval`` rebuilds a ``VecNormalize`` from it).
+
+    Args:
+        space: the env's observation space; its float vector entries are normalised.
+        num_envs: agents (one discounted return each).
+        gamma: discount of the returns whose spread scales the rewards.
+        device: where the statistics live.
+        enabled: ``False`` passes observations and rewards through unchanged.
+    """
+
+    def __init__(self, space: spaces.Dict, num_envs: int, gamma: float, device: torch.device, enabled: bool = True) -> None:
+        from visfly_dist.training.ppo import vector_keys
+
+        self.keys = vector_keys(space) if enabled else []
+        self.enabled = enabled
+        self.gamma = gamma
+        self.obs_moments = {k: RunningMoments(space.spaces[k].shape, device) for k in self.keys}
+        self.ret_moments = RunningMoments((), device)
+        self.returns = torch.zeros(num_envs, dtype=torch.float64, device=device)
+
+    def observe(self, obs: dict[str, torch.Tensor], update: bool = True) -> dict[str, torch.Tensor]:
+        """``obs`` with its vector entries normalised (after adding them to the statistics)."""
+        out = dict(obs)
+        for k in self.keys:
+            m = self.obs_moments[k]
+            if update:
+                m.update(obs[k])
+            out[k] = ((obs[k] - m.mean) / torch.sqrt(m.var + EPSILON)).clamp(-CLIP_OBS, CLIP_OBS).to(obs[k].dtype)
+        return out
+
+    def reward(self, reward: torch.Tensor, done: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """Scaled rewards of agents ``rows`` (default all); their discounted returns restart where ``done``."""
+        if not self.enabled:
+            return reward
+        returns = self.returns if rows is None else self.returns[rows]
+        returns = returns * self.gamma + reward.to(torch.float64)
+        self.ret_moments.update(returns)
+        scaled = (reward / torch.sqrt(self.ret_moments.var + EPSILON).to(reward.dtype)).clamp(-CLIP_REWARD, CLIP_REWARD)
+        returns = torch.where(done, 0.0, returns)
+        if rows is None:
+            self.returns = returns
+        else:
+            self.returns[rows] = returns
+        return scaled
+
+    def save(self, path: Path) -> None:
+        """Write the statistics as ``save_normalization`` writes a VecNormalize's."""
+        save_normalization(_Statistics(self), path)
+
+
+class _Statistics:
+    """The attributes of a ``VecNormalize`` that ``save_normalization`` reads, from a :class:`Normalizer`."""
+
+    def __init__(self, norm: Normalizer) -> None:
+        self.clip_obs, self.clip_reward, self.epsilon, self.gamma = CLIP_OBS, CLIP_REWARD, EPSILON, norm.gamma
+        self.norm_reward = norm.enabled
+        self.ret_rms = norm.ret_moments.as_numpy()
+        self.obs_rms = {k: m.as_numpy() for k, m in norm.obs_moments.items()}
+
+
+class Rollout:
+    """Tensors of one rollout, ``(n_steps, num_envs, ...)``, allocated once on the learner's device."""
+
+    def __init__(self, space: spaces.Dict, n_steps: int, num_envs: int, device: torch.device) -> None:
+        shape = (n_steps, num_envs)
+        self.observations = {k: torch.zeros(shape + s.shape, dtype=_torch_dtype(s.dtype), device=device)
+                             for k, s in space.spaces.items()}
+        self.actions = torch.zeros(shape + (4,), device=device)
+        self.log_probs = torch.zeros(shape, device=device)
+        self.values = torch.zeros(shape, device=device)
+        self.rewards = torch.zeros(shape, device=device)
+        self.dones = torch.zeros(shape, dtype=torch.bool, device=device)
+        self.advantages = torch.zeros(shape, device=device)
+        self.returns = torch.zeros(shape, device=device)
+
+    def compute_gae(self, last_values: torch.Tensor, gamma: float, gae_lambda: float) -> None:
+        """Advantages and returns (GAE); ``last_values``: values of the observations after the last step."""
+        next_value, running = last_values, torch.zeros_like(last_values)
+        for t in reversed(range(self.rewards.shape[0])):
+            live = (~self.dones[t]).float()
+            delta = self.rewards[t] + gamma * next_value * live - self.values[t]
+            running = delta + gamma * gae_lambda * live * running
+            self.advantages[t] = running
+            next_value = self.values[t]
+        self.returns = self.advantages + self.values
+
+
+@dataclass
+class Minibatch:
+    """The fields ``minibatch_gradients`` reads, for one minibatch of rows."""
+
+    observations: dict[str, torch.Tensor]
+    actions: torch.Tensor
+    old_values: torch.Tensor
+    old_log_prob: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+
+
+def _torch_dtype(dtype: np.dtype) -> torch.dtype:
+    return torch.from_numpy(np.zeros(0, dtype=dtype)).dtype
+
+
+class TensorPPO:
+    """PPO top to bottom on the tensor env (see the module docstring).
+
+    Args:
+        model: the SB3 ``PPO`` that holds the policy, its optimizer, the hyperparameters and the
+            logger (its own rollout collection and update are not used).
+        env: the task env (``step_tensor``, ``send``/``recv``).
+        normalize: normalise vector observations and rewards.
+        overlap: two groups of agents stepped in turn through ``send``/``recv``.
+        update_threads: threads of a CPU update (``None``: timed choice between every CPU and one).
+        cpu_cores: the cores of the update's threads (from the host plan).
+    """
+
+    def __init__(self, model: PPO, env: DroneEnvBase, normalize: bool = True, overlap: bool = False,
+                 update_threads: int | None = None, cpu_cores: int = 1) -> None:
+        self.model, self.env, self.policy = model, env, model.policy
+        self.device = model.device
+        self.n_steps, self.num_envs = model.n_steps, env.num_envs
+        self.norm = Normalizer(env.observation_space, env.num_envs, model.gamma, self.device, enabled=normalize)
+        self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device)
+        self.groups = self._groups(overlap)
+        self.threads = UpdateThreadChooser([update_threads] if update_threads else [max(cpu_cores, 1), 1])
+        self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0, "loop_s": 0.0}
+        self._obs: dict[str, torch.Tensor] | None = None  # normalised observation of every agent, on the device
+        self._on_episode: Callable[[dict[str, Any]], None] | None = None
+
+    def _groups(self, overlap: bool) -> list[torch.Tensor]:
+        """The agents' groups: everyone, or two halves of whole teams."""
+        n, team = self.num_envs, max(self.env.agents_per_scene if self.env.config.multi_agent else 1, 1)
+        teams = n // team
+        if not overlap or teams < 2:
+            return [torch.arange(n)]
+        half = (teams // 2) * team
+        return [torch.arange(0, half), torch.arange(half, n)]
+
+    # ----- the loop ------------------------------------------------------------------------------
+
+    def learn(self, total_timesteps: int, success: SuccessCallback, on_rollout_end: Callable[[int], None] | None = None) -> None:
+        """Collect and update until ``total_timesteps`` env steps; ``success`` takes every finished
+        episode and logs the curve; ``on_rollout_end(num_timesteps)`` runs after each rollout
+        (checkpoints, videos)."""
+        model = self.model
+        success.init_callback(model)
+        success.on_training_start(locals(), globals())
+        self._on_episode = success.record_episode
+        if self._obs is None:
+            first = {k: torch.as_tensor(v) for k, v in self.env.reset().items()}
+            self._obs = self.norm.observe(self._to_device(first))
+        t0 = time.perf_counter()
+        try:
+            while model.num_timesteps < total_timesteps:
+                t1 = time.perf_counter()
+                self.collect()
+                t2 = time.perf_counter()
+                self.phase_seconds["rollout_s"] += t2 - t1
+                model.num_timesteps += self.n_steps * self.num_envs
+                success.num_timesteps = model.num_timesteps
+                success.on_rollout_end()
+                if on_rollout_end is not None:
+                    on_rollout_end(model.num_timesteps)
+                self.update()
+                self.phase_seconds["update_s"] += time.perf_counter() - t2
+                model.logger.record("time/total_timesteps", model.num_timesteps, exclude="tensorboard")
+                model.logger.dump(step=model.num_timesteps)
+        finally:
+            self.phase_seconds["loop_s"] += time.perf_counter() - t0
+            success.on_training_end()
+
+    def collect(self) -> None:
+        """One rollout of ``n_steps`` per agent into :attr:`rollout` (GAE included)."""
+        self.policy.set_training_mode(False)
+        with torch.no_grad():
+            if len(self.groups) == 1:
+                for t in range(self.n_steps):
+                    actions = self._act(self.groups[0], t)
+                    self._take(self.groups[0], t, self.env.step_tensor(actions))
+            else:
+                self._collect_overlapped()
+            last_values = self.policy.predict_values(self._obs).flatten()
+        self.rollout.compute_gae(last_values, self.model.gamma, self.model.gae_lambda)
+
+    def _collect_overlapped(self) -> None:
+        """Both groups in flight: take in whichever is rendered, act on it, send it again."""
+        steps = [0] * len(self.groups)
+        owner = torch.empty(self.num_envs, dtype=torch.long)
+        for g, ids in enumerate(self.groups):
+            owner[ids] = g
+            self.env.send(self._act(ids, 0), ids)
+        in_flight = len(self.groups)
+        while in_flight:
+            result, ids = self.env.recv()
+            g = int(owner[int(ids[0])])
+            self._take(self.groups[g], steps[g], result)
+            steps[g] += 1
+            if steps[g] < self.n_steps:
+                self.env.send(self._act(self.groups[g], steps[g]), self.groups[g])
+            else:
+                in_flight -= 1
+
+    def _act(self, ids: torch.Tensor, t: int) -> torch.Tensor:
+        """Sample actions for agents ``ids`` at rollout step ``t`` and store what PPO needs of them."""
+        everyone = len(ids) == self.num_envs
+        obs = self._obs if everyone else {k: v[ids] for k, v in self._obs.items()}
+        actions, values, log_probs = self.policy(obs)
+        r = self.rollout
+        rows = slice(None) if everyone else ids.to(self.device)
+        for k, v in obs.items():
+            r.observations[k][t, rows] = v
+        r.actions[t, rows] = actions
+        r.values[t, rows] = values.flatten()
+        r.log_probs[t, rows] = log_probs
+        return actions.clamp(-1.0, 1.0).to(self.env.device)
+
+    def _take(self, ids: torch.Tensor, t: int, result: Any) -> None:
+        """Rewards, ends and next observations of agents ``ids`` from their step ``t``."""
+        obs, reward, terminated, truncated, info = result
+        everyone = len(ids) == self.num_envs
+        rows = None if everyone else ids.to(self.device)
+        done = (terminated | truncated).to(self.device)
+        reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows)
+        cut = truncated.to(self.device)
+        if bool(cut.any()):  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
+            which = cut.nonzero().squeeze(1)
+            terminal = {k: v[which.to(v.device)] for k, v in info["terminal_observation"].items()}
+            terminal = self.norm.observe(self._to_device(terminal), update=False)
+            reward = reward.clone()
+            reward[which] += self.model.gamma * self.policy.predict_values(terminal).flatten()
+        r = self.rollout
+        index = slice(None) if everyone else rows
+        r.rewards[t, index] = reward
+        r.dones[t, index] = done
+        fresh = self.norm.observe(self._to_device(obs))
+        if everyone:
+            self._obs = fresh
+        else:
+            for k, v in fresh.items():
+                self._obs[k][rows] = v
+        if bool(done.any()):
+            self._record_episodes(terminated | truncated, truncated, info)
+
+    def _record_episodes(self, done: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> None:
+        """Hand every finished episode's outcome to the episode log."""
+        rows = done.nonzero().squeeze(1).cpu()
+        flags = {k: info[k][rows].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
+        returns = info["episode_return"][rows].cpu().numpy()
+        lengths = info["episode_length"][rows].cpu().numpy()
+        cut = truncated[rows].cpu().numpy()
+        for j in range(len(rows)):
+            assert self._on_episode is not None
+            self._on_episode({"is_success": bool(flags["success"][j]), "collision": bool(flags["collision"][j]),
+                              "out_of_bounds": bool(flags["out_of_bounds"][j]), "lost": bool(flags["lost"][j]),
+                              "swapped": bool(flags["swapped"][j]), "TimeLimit.truncated": bool(cut[j]),
+                              "episode": {"r": float(returns[j]), "l": int(lengths[j])}})
+
+    def _to_device(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        if self.device.type == "cpu":
+            return {k: v.detach() for k, v in obs.items()}
+        return {k: v.detach().to(self.device, non_blocking=True) for k, v in obs.items()}
+
+    # ----- the update ----------------------------------------------------------------------------
+
+    def update(self) -> None:
+        """``n_epochs`` passes of shuffled minibatches over the rollout (SB3's PPO loss and logs)."""
+        model, policy, r = self.model, self.policy, self.rollout
+        policy.set_training_mode(True)
+        size = self.n_steps * self.num_envs
+        flat = {k: v.reshape(size, *v.shape[2:]) for k, v in r.observations.items()}
+        actions, values, log_probs = r.actions.reshape(size, -1), r.values.reshape(size), r.log_probs.reshape(size)
+        advantages, returns = r.advantages.reshape(size), r.returns.reshape(size)
+        settings = UpdateSettings(clip_range=float(model.clip_range(1.0)), clip_range_vf=None,
+                                  ent_coef=float(model.ent_coef), vf_coef=float(model.vf_coef),
+                                  normalize_advantage=model.normalize_advantage)
+        on_cpu = self.device.type == "cpu"
+        shards = self.threads.next() if on_cpu else 1
+        rollout_threads = torch.get_num_threads()
+        if on_cpu:
+            torch.set_num_threads(1)
+        pool = ThreadPoolExecutor(max_workers=shards - 1, thread_name_prefix="ppo-shard") if shards > 1 else None
+        stats, t0 = [], time.perf_counter()
+        try:
+            for _ in range(model.n_epochs):
+                order = torch.randperm(size, device=self.device)
+                for start in range(0, size, model.batch_size):
+                    idx = order[start:start + model.batch_size]
+                    batch = Minibatch({k: v[idx] for k, v in flat.items()}, actions[idx], values[idx],
+                                      log_probs[idx], advantages[idx], returns[idx])
+                    policy.optimizer.zero_grad()
+                    stats.append(minibatch_gradients(policy, batch, settings, False, pool, shards))
+                    torch.nn.utils.clip_grad_norm_(policy.parameters(), model.max_grad_norm)
+                    policy.optimizer.step()
+                model._n_updates += 1
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True)
+            torch.set_num_threads(rollout_threads)
+            if on_cpu:
+                self.threads.record(shards, time.perf_counter() - t0)
+        record = model.logger.record
+        record("train/update_threads", shards)
+        record("train/entropy_loss", float(np.mean([s.entropy_loss for s in stats])))
+        record("train/policy_gradient_loss", float(np.mean([s.policy_loss for s in stats])))
+        record("train/value_loss", float(np.mean([s.value_loss for s in stats])))
+        record("train/approx_kl", float(np.mean([s.approx_kl for s in stats])))
+        record("train/clip_fraction", float(np.mean([s.clipped for s in stats])))
+        record("train/explained_variance", float(explained_variance(values.cpu().numpy(), returns.cpu().numpy())))
+        record("train/std", float(torch.exp(policy.log_std.detach()).mean()))
+        record("train/n_updates", model._n_updates, exclude="tensorboard")
+
+    def save(self, path: Path) -> Path:
+        """The policy as an SB3 ``.zip`` and the normalisation statistics beside it."""
+        from visfly_dist.training.checkpoints import norm_path
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.model.save(path)
+        if self.norm.enabled:
+            self.norm.save(norm_path(path))
+        return path
