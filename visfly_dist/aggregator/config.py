@@ -54,6 +54,9 @@ class PoolConfig:
         listen: endpoints the aggregator listens on (peer mode) for workers to connect to.
         num_local_workers: workers spawned on this host by the aggregator (0 = only remote ones).
         backend: renderer of local workers: ``auto``, ``egl`` or ``raycast``.
+        worker_threads: tracing threads of each local worker; ``None``: this host's usable cores
+            (affinity and cgroup quota) divided among the local workers, so that together they
+            never ask for more cores than the host has.
         shared_memory: let Zenoh carry large payloads in shared memory (same host only).
         step_timeout_s: deadline of every request during a run (step, spawn sampling, health).
         startup_timeout_s: deadline for workers to come up and for a scene to load.
@@ -78,6 +81,7 @@ class PoolConfig:
     listen: tuple[str, ...] = ()
     num_local_workers: int = 2
     backend: str = "auto"
+    worker_threads: int | None = None
     shared_memory: bool = True
     step_timeout_s: float = 10.0
     startup_timeout_s: float = 60.0
@@ -106,6 +110,9 @@ class PoolConfig:
             problem = endpoint_problem(ep)
             if problem:
                 out.append(problem)
+        if self.worker_threads is not None and (not isinstance(self.worker_threads, int) or isinstance(self.worker_threads, bool)
+                                                or self.worker_threads < 1):
+            out.append(f"worker_threads={self.worker_threads!r} must be an int >= 1 or None (the host's cores shared)")
         if not isinstance(self.num_local_workers, int) or self.num_local_workers < 0:
             out.append(f"num_local_workers={self.num_local_workers!r} must be an int >= 0")
         elif self.num_local_workers == 0 and not self.connect and not self.listen:

@@ -19,6 +19,7 @@ import threading
 import time
 
 from visfly_dist.aggregator.config import BACKENDS, endpoint_problem
+from visfly_dist.host import usable_cores
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.keys import check_chunk
@@ -38,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="router or aggregator endpoint the workers connect to (repeatable)")
     parser.add_argument("--scene-root", action="append", default=[], metavar="DIR",
                         help="folder scene files may be loaded from (repeatable)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="tracing threads of each worker (default: this host's usable cores divided among the workers)")
     parser.add_argument("--backend", choices=BACKENDS, default="auto", help="renderer of the workers")
     parser.add_argument("--worker-prefix", default=None,
                         help="worker ids are PREFIX-0 .. PREFIX-(N-1) (default: the host name)")
@@ -54,6 +57,8 @@ def _default_prefix() -> str:
 
 def _check(args: argparse.Namespace) -> None:
     problems = [p for p in map(endpoint_problem, args.connect) if p]
+    if args.threads is not None and args.threads < 1:
+        problems.append(f"--threads {args.threads} must be >= 1")
     if args.workers < 1:
         problems.append(f"--workers {args.workers} must be >= 1")
     problems += [f"--scene-root {r!r} is not a directory" for r in args.scene_root if not os.path.isdir(r)]
@@ -77,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s launch %(levelname)s %(message)s")
     spec = WorkerLaunchSpec(run_id=args.run_id, connect=tuple(args.connect), scene_roots=tuple(args.scene_root),
                             backend=args.backend, shared_memory=not args.no_shm, lease_ms=args.lease_ms,
-                            parent_pid=os.getpid(), zenoh_config=resolve_config_file(args.zenoh_config))
+                            parent_pid=os.getpid(), zenoh_config=resolve_config_file(args.zenoh_config),
+                            threads=args.threads or max(1, usable_cores() // args.workers))
     log_dir = args.log_dir or tempfile.mkdtemp(prefix=f"visfly-launch-{args.run_id}-")
     os.makedirs(log_dir, exist_ok=True)
     prefix = args.worker_prefix or _default_prefix()

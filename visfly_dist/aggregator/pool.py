@@ -40,6 +40,7 @@ import zenoh
 from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
 from visfly_dist.aggregator.lost_requests import LostRequests, Verdict
+from visfly_dist.host import usable_cores
 from visfly_dist.errors import LostRequestsError, NoWorkersError, ProtocolError, RemoteError
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
@@ -173,7 +174,7 @@ class WorkerPool:
                     run_id=self.run_id, connect=workers_connect, scene_roots=self.config.scene_roots,
                     backend=self.config.backend, shared_memory=self.config.shared_memory,
                     lease_ms=self.config.lease_ms, parent_pid=os.getpid(), zenoh_config=session_cfg.config_file,
-                    threads=max(1, len(os.sched_getaffinity(0)) // self.config.num_local_workers))
+                    threads=self.config.worker_threads or max(1, usable_cores() // self.config.num_local_workers))
                 for _ in range(self.config.num_local_workers):
                     self.spawn_local()
         except BaseException:

@@ -43,7 +43,6 @@ radius.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -53,6 +52,7 @@ from scipy.spatial import cKDTree
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
+from visfly_dist.host import usable_cores
 from visfly_dist.errors import ConfigError
 from visfly_dist.scene_worker import render_native
 from visfly_dist.scene_worker.render_base import checked_time
@@ -94,12 +94,14 @@ class ObstacleQueries:
         drone_radius: radius of a drone's collision sphere, metres.
         backend: nearest points from ``"native"`` (the native library's closest-point query),
             ``"fcl"`` (python-fcl), or ``"auto"``: native when the library is available, else FCL.
+        threads: most threads of a native query (``None``: this host's usable cores, at most 8);
+            a worker passes its share of the host's cores.
 
     Attributes:
         backend: the nearest-point backend in use, ``"native"`` or ``"fcl"``.
     """
 
-    def __init__(self, scene: Scene, drone_radius: float = 0.1, backend: str = "auto") -> None:
+    def __init__(self, scene: Scene, drone_radius: float = 0.1, backend: str = "auto", threads: int | None = None) -> None:
         if not (np.isfinite(drone_radius) and drone_radius >= 0):
             raise ConfigError(f"drone_radius={drone_radius!r} must be a finite number >= 0")
         if backend not in BACKENDS:
@@ -109,7 +111,7 @@ class ObstacleQueries:
         native = backend == "native" or (backend == "auto" and render_native.available())
         self.backend = "native" if native else "fcl"
         self.drone_radius = float(drone_radius)
-        self._max_threads = min(8, len(os.sched_getaffinity(0)))
+        self._max_threads = threads or min(8, usable_cores())
         self._moving = [(ObstacleQueries(Scene(o.name, [SceneObject(o.name, o.object_id, o.mesh)], scene.bounds),
                                          drone_radius, backend), o.motion, o.bounding_radius,
                          cKDTree(o.motion.path_points(SWEEP_SPACING))) for o in scene.moving_objects]

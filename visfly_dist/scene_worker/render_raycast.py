@@ -24,13 +24,13 @@ the native tracer in the same call, or in numpy (:meth:`_overlay_drones`) with e
 from __future__ import annotations
 
 import logging
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
+from visfly_dist.host import usable_cores
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.scene_worker import render_native
@@ -115,7 +115,7 @@ class RaycastRenderer(Renderer):
                  threads: int | None = None, tracer: str | None = None) -> None:
         super().__init__(scene, cameras, drone_radius)
         if threads is None:
-            threads = min(8, len(os.sched_getaffinity(0)))
+            threads = min(8, usable_cores())
         if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
             raise ConfigError(f"threads={threads!r} must be an int >= 1")
         if tracer is not None and tracer not in TRACERS:

@@ -72,7 +72,7 @@ def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str, threa
     """
     assert roots, "a worker always has at least one scene root"
     scene = resolve_source(request.source, list(roots))
-    queries = ObstacleQueries(scene, drone_radius=request.drone_radius)
+    queries = ObstacleQueries(scene, drone_radius=request.drone_radius, threads=threads)
     renderer = None
     if _backend_for(request, backend) != "egl":
         renderer = _renderer(request, scene, backend, threads)
