@@ -18,6 +18,7 @@ from visfly_dist.errors import VisflyError
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "train": ("visfly_dist.training.train_cli", "train a flight policy (PPO, BPTT or SHAC) on a task"),
     "eval": ("visfly_dist.training.eval_cli", "evaluate a checkpoint: success rate and a video"),
+    "export": ("visfly_dist.training.export_cli", "export a PPO checkpoint's actor to ONNX for a drone"),
     "worker": ("visfly_dist.scene_worker.cli", "serve scenes (render + obstacle queries) over Zenoh"),
     "router": ("visfly_dist.aggregator.router_cli", "run a Zenoh router for a multi-machine pool"),
     "launch": ("visfly_dist.aggregator.launch_cli", "keep a local pool of scene workers alive"),

@@ -86,6 +86,8 @@ class ConvPoolSequential(nn.Sequential):
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if torch.onnx.is_in_onnx_export():
+            return super().forward(x)  # ONNX export (visfly-dist export): the plain layers, no native kernel
         layers = list(self)
         i = 0
         while i < len(layers):
