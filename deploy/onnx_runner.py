@@ -164,8 +164,8 @@ def main(argv: list[str] | None = None) -> int:
             observations = {k: data[k] for k in data.files}
         result = run_sequence(policy, observations)
         lat = result["latency_ms"]
-        print(f"{len(lat)} steps, latency median {np.median(lat):.3f} ms, max {lat.max():.3f} ms "
-              f"(budget {1e3 / policy.control_rate_hz:.1f} ms per step)" if policy.control_rate_hz else f"{len(lat)} steps")
+        budget = f" (budget {1e3 / policy.control_rate_hz:.1f} ms per step)" if policy.control_rate_hz else ""
+        print(f"{len(lat)} steps, latency median {np.median(lat):.3f} ms, max {lat.max():.3f} ms{budget}")
         if args.out:
             np.savez(args.out, **result)
             print(f"wrote {args.out}")
