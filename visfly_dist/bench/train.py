@@ -9,7 +9,16 @@ budget, the seed and a temporary run folder changed; no checkpoints). It reports
 * ``learner_busy``: CPU seconds of the training process over the loop's wall time (1.0 = one core
   busy throughout; more with several torch threads);
 * ``workers_busy``: CPU seconds of the scene worker processes (from ``/proc/<pid>/stat``) over the
-  loop's wall time times the number of workers (1.0 = every worker busy throughout).
+  loop's wall time times the number of workers (1.0 = every worker busy throughout);
+* ``learner_cpu_s_per_1k``: CPU seconds of the training process (every thread: Zenoh's included)
+  during rollout collection per 1,000 rollout env steps, *outside the policy network* (the
+  policy's forward passes timed on their thread and taken out): the serial part of the learner
+  that caps scaling; ``policy_cpu_s_per_1k`` is the part taken out.
+
+Runs follow the host plan (:mod:`visfly_dist.training.host_plan`) unless ``--device``,
+``--num-envs`` or ``--workers`` say otherwise; ``--algo ppo sb3-ppo`` runs both trainers in one go
+and adds their ratios. The default window (49,152 env steps) includes navigation's scene swaps, as
+the main job's steady state does.
 
 Loop, rollout and update seconds come from the trainer's ``summary`` (``loop_s``, ``rollout_s``,
 ``update_s``) when it reports them; otherwise they are timed by wrapping, for the measurement only,
@@ -35,7 +44,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from visfly_dist.errors import ConfigError
 
-DEFAULT_TIMESTEPS = 8192
+DEFAULT_TIMESTEPS = 49_152
 QUICK_TIMESTEPS = 4096
 _CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -133,17 +142,26 @@ class LoopClock:
     end: CpuSnapshot | None = None
     rollouts: int = 0
     updates: int = 0
+    rollout_cpu_s: float = 0.0
+    policy_cpu_s: float = 0.0
     _depth: int = field(default=0, repr=False)
 
 
 @contextlib.contextmanager
-def watch_sb3(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
-    """Time SB3's ``learn``, ``collect_rollouts`` and ``PPO.train`` while the block runs, then restore them."""
+def watch_trainers(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
+    """While the block runs, time SB3's ``learn``, ``collect_rollouts`` and ``PPO.train``, and the
+    process CPU of rollout collection (SB3's and :class:`TensorPPO`'s) with the policy's forward
+    passes in it (their thread's CPU time); then restore every method."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    from visfly_dist.training.tensor_ppo import TensorPPO
 
     clock = LoopClock()
     learn, collect, update = OnPolicyAlgorithm.learn, OnPolicyAlgorithm.collect_rollouts, PPO.train
+    tensor_collect = TensorPPO.collect
+    forward, predict_values = ActorCriticPolicy.forward, ActorCriticPolicy.predict_values
 
     def timed_learn(self: Any, *args: Any, **kwargs: Any) -> Any:
         clock._depth += 1
@@ -156,13 +174,26 @@ def watch_sb3(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
             if clock._depth == 0:
                 clock.end = snapshot()
 
-    def timed_collect(self: Any, *args: Any, **kwargs: Any) -> Any:
-        t0 = time.perf_counter()
-        try:
-            return collect(self, *args, **kwargs)
-        finally:
-            clock.rollout_s += time.perf_counter() - t0
-            clock.rollouts += 1
+    def cpu_of(method: Callable[..., Any], count: bool) -> Callable[..., Any]:
+        def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
+            t0, c0 = time.perf_counter(), time.process_time()
+            try:
+                return method(self, *args, **kwargs)
+            finally:
+                clock.rollout_cpu_s += time.process_time() - c0
+                if count:
+                    clock.rollout_s += time.perf_counter() - t0
+                    clock.rollouts += 1
+        return timed
+
+    def policy_cpu(method: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
+            c0 = time.thread_time()
+            try:
+                return method(self, *args, **kwargs)
+            finally:
+                clock.policy_cpu_s += time.thread_time() - c0
+        return timed
 
     def timed_update(self: Any, *args: Any, **kwargs: Any) -> Any:
         t0 = time.perf_counter()
@@ -172,11 +203,17 @@ def watch_sb3(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
             clock.update_s += time.perf_counter() - t0
             clock.updates += 1
 
-    OnPolicyAlgorithm.learn, OnPolicyAlgorithm.collect_rollouts, PPO.train = timed_learn, timed_collect, timed_update
+    saved = [(OnPolicyAlgorithm, "learn", learn), (OnPolicyAlgorithm, "collect_rollouts", collect), (PPO, "train", update),
+             (TensorPPO, "collect", tensor_collect), (ActorCriticPolicy, "forward", forward),
+             (ActorCriticPolicy, "predict_values", predict_values)]
+    OnPolicyAlgorithm.learn, OnPolicyAlgorithm.collect_rollouts, PPO.train = timed_learn, cpu_of(collect, True), timed_update
+    TensorPPO.collect = cpu_of(tensor_collect, False)
+    ActorCriticPolicy.forward, ActorCriticPolicy.predict_values = policy_cpu(forward), policy_cpu(predict_values)
     try:
         yield clock
     finally:
-        OnPolicyAlgorithm.learn, OnPolicyAlgorithm.collect_rollouts, PPO.train = learn, collect, update
+        for owner, name, method in saved:
+            setattr(owner, name, method)
 
 
 def busy_shares(start: CpuSnapshot, end: CpuSnapshot) -> dict[str, Any]:
@@ -214,13 +251,15 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
     from visfly_dist.training.config import TrainConfig
     from visfly_dist.training.ppo import train
 
-    count = default_workers(task) if workers is None else workers
+    count = workers
     out_dir = tempfile.mkdtemp(prefix="visfly-bench-train-")
     threads = torch.get_num_threads()
     monitor = CpuMonitor()
     printed = io.StringIO()
     remote = None
     try:
+        if delay_ms is not None and count is None:
+            count = default_workers(task)
         remote = None if delay_ms is None else RemoteWorkers(count, delay_ms, backend="raycast")
         overrides = {} if remote is None else {"pool": {"listen": [f"tcp/127.0.0.1:{remote.listen_port}"],
                                                         "shared_memory": False, "min_workers": count}}
@@ -228,8 +267,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
                           progress=False, workers=count if remote is None else 0,
                           run_id=remote.run_id if remote else None, overrides=overrides)
         cfg = replace(cfg, **(changes or {}))
-        overlap = bool(cfg.resolved().overlap)
-        with watch_sb3(monitor.snapshot) as clock, contextlib.redirect_stdout(printed):
+        with watch_trainers(monitor.snapshot) as clock, contextlib.redirect_stdout(printed):
             before = monitor.snapshot()
             result = train(cfg)
             after = monitor.snapshot()
@@ -244,7 +282,11 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
         if remote is not None:
             remote.close()
         shutil.rmtree(out_dir, ignore_errors=True)
-    return {**_row(task, delay_ms, count, result, clock, before, after), "overlap": overlap}
+    plan = result.config.host_plan
+    row = _row(task, delay_ms, result.config.workers, result, clock, before, after)
+    return {**row, "algo": result.config.algo, "device": result.config.device, "num_envs": result.config.num_envs,
+            "worker_threads": result.config.worker_threads, "overlap": bool(result.config.overlap),
+            "host_plan": plan.get("reasons", {})}
 
 
 def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: LoopClock, before: CpuSnapshot,
@@ -259,6 +301,7 @@ def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: Lo
     start, end = (clock.start, clock.end) if clock.start and clock.end else (before, after)
     loop_s = float(summary.get("loop_s", end.wall - start.wall))
     steps = int(result.timesteps)
+    per_1k = 1000.0 / steps if steps else float("nan")
     return {
         "task": task, "delay_ms": delay_ms, "workers": workers, "timesteps": steps,
         "env_steps_per_s": round(steps / loop_s, 1),
@@ -268,41 +311,65 @@ def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: Lo
         **busy_shares(start, end),
         "startup_s": round((after.wall - before.wall) - loop_s, 2),
         "success_rate": summary.get("success_rate"),
+        "learner_cpu_s_per_1k": round((clock.rollout_cpu_s - clock.policy_cpu_s) * per_1k, 4),
+        "policy_cpu_s_per_1k": round(clock.policy_cpu_s * per_1k, 4),
         "timing": timing if clock.start or "loop_s" in summary else f"{timing}; loop = whole train() call",
     }
 
 
 def bench_train(task: str = "navigation", timesteps: int = DEFAULT_TIMESTEPS, delays: Sequence[float] | None = None,
-                workers: int | None = None, seed: int = 0, *, changes: Mapping[str, Any] | None = None,
-                log: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run the default training loop once per delay (``None``: once, with local workers).
+                workers: int | None = None, seed: int = 0, *, algos: Sequence[str | None] = (None,),
+                changes: Mapping[str, Any] | None = None, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Run the default training loop once per trainer and delay (``None``: local workers).
 
-    ``changes``: ``TrainConfig`` fields to change from the default (see :func:`train_once`).
+    ``algos``: the trainers (``ppo``, ``sb3-ppo``; ``None``: the task's default). ``changes``:
+    ``TrainConfig`` fields to change from the default (see :func:`train_once`).
 
     Returns:
         ``{"rows": [...], "ratios": [...]}``; ratios divide each delayed run's whole-loop and
-        rollout env-steps/s by the 0 ms run's, when 0 is among ``delays``.
+        rollout env-steps/s by the 0 ms run's (same trainer), and ``ppo``'s figures by
+        ``sb3-ppo``'s (same delay) when both ran.
     """
     if not isinstance(timesteps, int) or timesteps < 1:
         raise ConfigError(f"timesteps={timesteps!r} must be an int >= 1")
     if workers is not None and (not isinstance(workers, int) or workers < 1):
         raise ConfigError(f"workers={workers!r} must be an int >= 1")
     rows = []
-    for delay in (list(delays) if delays else [None]):
-        if log:
-            where = "local workers" if delay is None else f"remote workers behind {delay:g} ms added round trip"
-            log(f"[bench train] {task}: {timesteps:,} env steps, {where}")
-        rows.append(train_once(task, timesteps, delay, workers, seed, changes))
-    ratios = []
-    base = next((r for r in rows if r["delay_ms"] == 0), None)
+    for algo in algos:
+        for delay in (list(delays) if delays else [None]):
+            if log:
+                where = "local workers" if delay is None else f"remote workers behind {delay:g} ms added round trip"
+                log(f"[bench train] {task} ({algo or 'default trainer'}): {timesteps:,} env steps, {where}")
+            run_changes = dict(changes or {}) | ({"algo": algo} if algo else {})
+            rows.append(train_once(task, timesteps, delay, workers, seed, run_changes))
+    return {"rows": rows, "ratios": delay_ratios(rows) + trainer_ratios(rows)}
+
+
+def delay_ratios(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Each delayed run's env-steps/s over the same trainer's 0 ms run."""
+    out = []
     for r in rows:
-        if base is not None and r is not base and r["delay_ms"] is not None:
-            for fig in ("env_steps_per_s", "rollout_env_steps_per_s"):
-                if r[fig] and base[fig]:
-                    ratios.append({"ratio": f"delay {r['delay_ms']:g} / 0 ms {fig}",
-                                   "value": round(r[fig] / base[fig], 3),
-                                   "goal": ">= 0.9" if fig == "env_steps_per_s" and r["delay_ms"] == 20 else ""})
-    return {"rows": rows, "ratios": ratios}
+        base = next((b for b in rows if b["delay_ms"] == 0 and b["algo"] == r["algo"]), None)
+        if base is None or r is base or r["delay_ms"] is None:
+            continue
+        for fig in ("env_steps_per_s", "rollout_env_steps_per_s"):
+            if r[fig] and base[fig]:
+                out.append({"ratio": f"{r['algo']} delay {r['delay_ms']:g} / 0 ms {fig}", "value": round(r[fig] / base[fig], 3),
+                            "goal": ">= 0.9" if fig == "env_steps_per_s" and r["delay_ms"] == 20 else ""})
+    return out
+
+
+def trainer_ratios(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """``ppo`` over ``sb3-ppo`` at the same delay: env-steps/s (whole loop, rollout) and learner CPU."""
+    out = []
+    for r in (r for r in rows if r["algo"] == "ppo"):
+        base = next((b for b in rows if b["algo"] == "sb3-ppo" and b["delay_ms"] == r["delay_ms"]), None)
+        if base is None:
+            continue
+        for fig, goal in (("env_steps_per_s", ">= 1.5"), ("rollout_env_steps_per_s", ""), ("learner_cpu_s_per_1k", "<= 0.25")):
+            if r[fig] and base[fig]:
+                out.append({"ratio": f"ppo / sb3-ppo {fig}", "value": round(r[fig] / base[fig], 3), "goal": goal})
+    return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -313,7 +380,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--delay-ms", type=float, nargs="+", default=None, metavar="MS",
                         help="remote workers behind this added round trip; several values: one run each, "
                              "with ratios to the 0 ms run (e.g. --delay-ms 0 20)")
-    parser.add_argument("--workers", type=int, default=None, help="scene workers (default: the task's)")
+    parser.add_argument("--workers", type=int, default=None, help="scene workers (default: the host plan's)")
+    parser.add_argument("--num-envs", type=int, default=None, help="agents (default: the host plan's)")
+    parser.add_argument("--device", default=None, help="the learner's device (default: auto, as visfly-dist train)")
+    parser.add_argument("--algo", nargs="+", default=[None], choices=("ppo", "sb3-ppo"),
+                        help="trainer(s): ppo, sb3-ppo, or both (one run each, with their ratios); default: the task's")
     parser.add_argument("--seed", type=int, default=0, help="seed of the run")
     parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                         help="train with --overlap / --no-overlap (next rollout collected during the update, "
@@ -327,8 +398,9 @@ def run(args: argparse.Namespace) -> int:
 
     timesteps = args.timesteps or (QUICK_TIMESTEPS if args.quick else DEFAULT_TIMESTEPS)
     result: dict[str, Any] = {"machine": machine_info()}
-    result |= bench_train(args.task, timesteps, args.delay_ms, args.workers, args.seed,
-                          changes=None if args.overlap is None else {"overlap": args.overlap},
+    changes = {k: v for k, v in (("overlap", args.overlap), ("device", args.device), ("num_envs", args.num_envs))
+               if v is not None}
+    result |= bench_train(args.task, timesteps, args.delay_ms, args.workers, args.seed, algos=args.algo, changes=changes,
                           log=lambda line: print(line, flush=True))
     result["load_average_end"] = load_average()
     print(report.text_table(result["rows"]))

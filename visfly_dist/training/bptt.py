@@ -36,6 +36,7 @@ from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.diff_common import (DiffActor, EpisodeLog, clip_and_step, decay_lr, detach_obs, load_params,
                                               rollout_window, save_params)
 from visfly_dist.training.ppo import TrainResult, env_kwargs, write_config
+from visfly_dist.training.host_plan import check_device
 
 
 def build_diff_env(cfg: TrainConfig) -> DroneEnvBase:
@@ -76,7 +77,7 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
     Raises:
         ConfigError: a bad setting, raised before any worker starts.
     """
-    cfg = replace(cfg, algo="bptt").resolved().validate()
+    cfg = replace(cfg, algo="bptt", device=check_device(cfg.device)).resolved().validate()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)

@@ -15,7 +15,7 @@ from typing import Any
 
 from visfly_dist.errors import ConfigError
 
-BACKBONES = ("visfly-cnn", "resnet-tiny")
+BACKBONES = ("visfly-cnn", "resnet-tiny", "mobilenet-tiny", "efficientnet-tiny")
 PPO_ALGOS = ("ppo", "sb3-ppo")
 ALGOS = (*PPO_ALGOS, "bptt", "shac")
 
@@ -105,7 +105,9 @@ class TrainConfig:
         backend: renderer of local workers (``auto``, ``egl``, ``raycast``; ``None``: env default).
         seed: seed of the env, the policy initialisation and PPO's sampling.
         out: run folder; ``None``: ``runs/TASK-<timestamp>``.
-        device: torch device of the policy.
+        device: torch device of the policy; ``auto``: CUDA when torch sees a GPU, else the CPU.
+        worker_threads: tracing threads of each local worker (``None``: the host plan's share).
+        host_plan: the host plan the run was sized with (written by the trainer, for the record).
         threads: torch CPU threads of the training process while it steps the env (the scene
             workers use the other cores).
         update_threads: threads of a PPO update, when the local workers sit idle (plain PPO on
@@ -151,7 +153,8 @@ class TrainConfig:
     backend: str | None = None
     seed: int = 0
     out: str | None = None
-    device: str = "cpu"
+    device: str = "auto"
+    worker_threads: int | None = None
     threads: int = 1
     update_threads: int | None = None
     n_steps: int | None = None
@@ -172,6 +175,7 @@ class TrainConfig:
     overrides: dict[str, Any] = field(default_factory=dict)
     algo: str | None = None
     horizon: int | None = None
+    host_plan: dict[str, Any] = field(default_factory=dict)
 
     def resolved(self) -> "TrainConfig":
         """A copy with the algorithm and the task's defaults for it filled in, and ``out`` set."""
@@ -182,7 +186,7 @@ class TrainConfig:
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         overlap = self.overlap if self.overlap is not None else (algo in PPO_ALGOS and self.workers == 0)
         cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
-                      overrides=dict(self.overrides), algo=algo, overlap=overlap, **filled)
+                      overrides=dict(self.overrides), algo=algo, overlap=overlap, host_plan=dict(self.host_plan), **filled)
         if cfg.out is None:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg
@@ -194,6 +198,8 @@ class TrainConfig:
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 out.append(f"{name}={value!r} must be an int >= {low}")
+        if self.worker_threads is not None and (not isinstance(self.worker_threads, int) or self.worker_threads < 1):
+            out.append(f"worker_threads={self.worker_threads!r} must be an int >= 1")
         if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 0):
             out.append(f"workers={self.workers!r} must be an int >= 0")
         if self.update_threads is not None and (not isinstance(self.update_threads, int)

@@ -40,6 +40,7 @@ from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
 from visfly_dist.host import usable_cores
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
 from visfly_dist.training.extractors import visfly_policy_kwargs
+from visfly_dist.training.host_plan import apply_host_plan
 from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
 from visfly_dist.training.tensor_ppo import TensorPPO
@@ -54,6 +55,8 @@ class TrainResult:
     timesteps: int
     interrupted: bool
     summary: dict[str, float]
+    config: TrainConfig | None = None
+    """The resolved configuration the run trained with (host plan included)."""
 
 
 def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
@@ -69,7 +72,8 @@ def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
     pool_changes = overrides.pop("pool", {}) or {}
     if not isinstance(pool_changes, dict):
         raise ConfigError(f"--set pool={pool_changes!r} must be a JSON map of PoolConfig fields, e.g. pool={{\"lease_ms\":5000}}")
-    flags = {"num_local_workers": cfg.workers, "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id,
+    flags = {"num_local_workers": cfg.workers, "worker_threads": cfg.worker_threads,
+             "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id,
              "backend": cfg.backend, "scene_roots": tuple(cfg.scene_roots) or None}
     pool_changes.update({k: v for k, v in flags.items() if v is not None})
     kwargs: dict[str, Any] = {"seed": cfg.seed, **overrides}
@@ -147,7 +151,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     Raises:
         ConfigError: a bad setting, raised before any worker starts.
     """
-    cfg = replace(cfg, algo=cfg.algo if cfg.algo in PPO_ALGOS else default_ppo(cfg.task)).resolved().validate()
+    cfg = replace(cfg, algo=cfg.algo if cfg.algo in PPO_ALGOS else default_ppo(cfg.task))
+    cfg = apply_host_plan(cfg, log=lambda line: print(line, flush=True) if cfg.progress else None).resolved().validate()
     torch.set_num_threads(cfg.threads)
     keep_freed_memory()
     run_dir = Path(cfg.out)
@@ -178,7 +183,7 @@ def train(cfg: TrainConfig) -> TrainResult:
                 success.on_training_end()
         final = save(run_dir / "final.zip")
         summary = {**success.summary(), **phases}
-        result = TrainResult(run_dir, final, model.num_timesteps, interrupted, summary)
+        result = TrainResult(run_dir, final, model.num_timesteps, interrupted, summary, cfg)
     finally:
         env.close()
     s = result.summary

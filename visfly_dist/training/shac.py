@@ -34,6 +34,7 @@ from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.diff_common import (Critic, DiffActor, EpisodeLog, Window, clip_and_step, decay_lr,
                                               detach_obs, rollout_window, save_params)
 from visfly_dist.training.ppo import TrainResult, write_config
+from visfly_dist.training.host_plan import check_device
 
 TARGET_ALPHA = 0.2
 """Share of the old target critic kept at each update (SHAC's ``target_critic_alpha``)."""
@@ -97,7 +98,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
     Raises:
         ConfigError: a bad setting, raised before any worker starts.
     """
-    cfg = replace(cfg, algo="shac").resolved().validate()
+    cfg = replace(cfg, algo="shac", device=check_device(cfg.device)).resolved().validate()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)

@@ -37,14 +37,16 @@ def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("task", help="task name: navigation, hover, landing, gap_crossing, racing, tracking, navigation_moving")
     parser.add_argument("--timesteps", type=int, help="total env steps (default: per task)")
-    parser.add_argument("--num-envs", type=int, help="parallel agents (default: per task)")
-    parser.add_argument("--workers", type=int, help="local scene workers to spawn (default: the env's)")
+    parser.add_argument("--num-envs", type=int, help="parallel agents (default: the task's, scaled by the host plan)")
+    parser.add_argument("--workers", type=int, help="local scene workers to spawn (default: the host plan's)")
     parser.add_argument("--connect", action="append", default=[], metavar="EP", help="Zenoh endpoint to join (repeatable)")
     parser.add_argument("--run-id", help="key namespace of this run (default: random)")
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), help="renderer of local workers")
     parser.add_argument("--seed", type=int, default=0, help="seed of env, policy and sampling (default 0)")
     parser.add_argument("--out", help="run folder (default runs/TASK-<timestamp>)")
-    parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
+    parser.add_argument("--device", default="auto", help="torch device of the policy (default auto: cuda when torch sees a GPU, else cpu)")
+    parser.add_argument("--worker-threads", type=int, default=None, metavar="N",
+                        help="tracing threads of each local worker (default: the host's usable cores shared among the workers)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads of the trainer (default 1)")
     parser.add_argument("--update-threads", type=int, default=None, metavar="N",
                         help="threads of each PPO update, when the workers are idle; each minibatch is split "
@@ -60,15 +62,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
     parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
-                        help="collect the next rollout while PPO updates (workers and learner busy at once; "
-                             "policy lag of one update, which can cost sample efficiency); default: on when "
-                             "every worker is remote (--workers 0), off otherwise")
+                        help="ppo: step two agent groups in turn, the workers rendering one while the learner acts "
+                             "on the other (no policy lag; default: the host plan's, on from 4 cores or with remote "
+                             "workers only). sb3-ppo: collect the next rollout while PPO updates (policy lag of "
+                             "one update); default: on when every worker is remote (--workers 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
     add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
-    parser.add_argument("--algo", choices=ALGOS, help="ppo, or bptt / shac through the dynamics (default: ppo; "
-                        "landing: bptt)")
+    parser.add_argument("--algo", choices=ALGOS, help="ppo (PPO on the tensor env, rollout on the learner's "
+                        "device), sb3-ppo (stable-baselines3's loop), or bptt / shac through the dynamics "
+                        "(default: the task's, see visfly_dist.training.config.DEFAULT_ALGOS)")
     parser.add_argument("--horizon", type=int, help="bptt/shac window, steps (default 32; per task)")
     parser.set_defaults(func=run)
 
@@ -97,6 +101,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         seed=args.seed,
         out=args.out,
         device=args.device,
+        worker_threads=args.worker_threads,
         threads=args.threads,
         update_threads=args.update_threads,
         n_steps=args.n_steps,

@@ -1,0 +1,208 @@
+"""The host plan: a run sized to the machine it starts on (cores, GPU, memory).
+
+``visfly-dist train`` (and ``eval``, ``bench train``) leave the sizes of a run to this plan unless
+they are given: the learner's device, the number of agents, the local scene workers and each
+worker's tracing threads, whether two agent groups overlap, and the PPO batch that follows the
+number of agents. Every choice comes with one line saying why; the plan is recorded in the run's
+``config.json`` (``host_plan``), and every choice stays overridable by its own flag.
+
+The rules:
+
+* **Cores** are the usable ones (:func:`visfly_dist.host.usable_cores`: CPU affinity and cgroup
+  quota), never ``os.cpu_count()``. The learner keeps one core (two from 8 cores up: its main
+  thread and Zenoh's), the workers share the rest, each tracing with ``cores // workers`` threads,
+  so that learner, workers and their threads never ask for more cores than the host has. On 2
+  cores learner and workers take turns (the learner waits while the workers render).
+* **Device**: ``auto`` is CUDA when torch sees a GPU, else the CPU. ``cuda`` without a usable GPU
+  fails before any work, naming torch's build.
+* **Workers**: 2 up to 8 cores (measured best on 2), then one per 4 cores, at most 8 (one worker
+  with 16 threads stepped 21k env-steps/s at 1,024 agents on a 16-core host; 14 workers with 8
+  threads each, 15k).
+* **Agents**: the task's default (sized on 2 cores) times a scale, a power of two: half the usable
+  cores, at least 8 with a GPU, capped by memory (the rollout must fit a quarter of what is free).
+* **Batch**: the rollout length stays; the minibatch grows with the agents, so an update keeps
+  the same number of minibatches over a larger batch (fewer, larger updates per env step).
+* **Overlap** (two agent groups through ``send``/``recv``): on from 4 cores, where the learner has
+  a core of its own; and whenever every worker is remote.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from visfly_dist.errors import ConfigError
+from visfly_dist.host import available_memory_bytes, usable_cores
+
+if TYPE_CHECKING:
+    from visfly_dist.training.config import TrainConfig
+
+MAX_SCALE = 64
+MAX_WORKERS = 8
+IMAGE_BYTES = 64 * 64 * 4
+"""A 64x64 float depth image: the rollout's bytes per agent and step are about this."""
+
+
+@dataclass(frozen=True)
+class HostFacts:
+    """What the plan is made from."""
+
+    cores: int
+    memory_bytes: int
+    gpu: str | None
+    gpu_memory_bytes: int = 0
+
+    @classmethod
+    def probe(cls) -> "HostFacts":
+        """This host, as this process sees it."""
+        import torch
+
+        gpu, gpu_memory = None, 0
+        if torch.cuda.is_available():
+            props = torch.cuda.get_device_properties(0)
+            gpu, gpu_memory = props.name, int(props.total_memory)
+        return cls(usable_cores(), available_memory_bytes(), gpu, gpu_memory)
+
+
+@dataclass
+class HostPlan:
+    """The sizes chosen for a run, and why (one line per choice)."""
+
+    facts: HostFacts
+    device: str
+    num_envs: int
+    workers: int
+    worker_threads: int
+    overlap: bool
+    batch_size: int
+    reasons: dict[str, str] = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        """``host plan: <choice> = <value> (<why>)`` for every choice."""
+        return [f"host plan: {name} = {getattr(self, name)} ({why})" for name, why in self.reasons.items()]
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["facts"] = asdict(self.facts)
+        return out
+
+
+def check_device(device: str) -> str:
+    """``device`` resolved (``auto`` -> ``cuda``/``cpu``); a CUDA device torch cannot use fails now.
+
+    Raises:
+        ConfigError: ``cuda`` asked of a CPU-only torch, or of a host where torch sees no GPU.
+    """
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        build = ("a CPU-only build" if torch.version.cuda is None
+                 else f"built for CUDA {torch.version.cuda}, but it sees no GPU (driver, CUDA_VISIBLE_DEVICES?)")
+        raise ConfigError(f"--device {device}: torch {torch.__version__} is {build}; use --device auto or cpu")
+    try:
+        torch.device(device)
+    except RuntimeError as exc:
+        raise ConfigError(f"--device {device!r} is not a torch device: {exc}") from None
+    return device
+
+
+def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_steps: int, *,
+              num_envs: int | None = None, workers: int | None = None, worker_threads: int | None = None,
+              overlap: bool | None = None, batch_size: int | None = None, remote_only: bool = False,
+              team: int = 1) -> HostPlan:
+    """Size a run for ``facts`` (pure: the same facts give the same plan).
+
+    Args:
+        facts: the host.
+        device: the learner's device, already checked (``cpu``/``cuda...``).
+        base_envs, base_batch: the task's agents and minibatch for a 2-core CPU host.
+        n_steps: the rollout length (kept).
+        num_envs, workers, worker_threads, overlap, batch_size: given values, kept as they are.
+        remote_only: every worker is remote (``--workers 0``).
+        team: agents per team (the agent count stays a multiple of it).
+    """
+    reasons: dict[str, str] = {}
+    cores = facts.cores
+    gpu = device.startswith("cuda")
+    reasons["device"] = ("given" if device not in ("cpu", "cuda") else
+                         f"torch sees {facts.gpu}" if gpu else "no GPU that torch can use")
+    if workers is None:
+        workers = 0 if remote_only else (2 if cores <= 8 else min(MAX_WORKERS, cores // 4))
+        reasons["workers"] = ("every worker is remote" if remote_only else
+                              f"{cores} usable cores: 2 up to 8 cores, then one per 4 (at most {MAX_WORKERS})")
+    else:
+        reasons["workers"] = "given"
+    learner_cores = 0 if cores <= 2 else (1 if cores < 8 else 2)
+    if worker_threads is None:
+        worker_threads = max(1, (cores - learner_cores) // max(workers, 1))
+        reasons["worker_threads"] = (f"{cores} cores - {learner_cores} for the learner, shared by {max(workers, 1)} worker(s)")
+    else:
+        reasons["worker_threads"] = "given"
+    if num_envs is None:
+        scale = _power_of_two_at_most(max(1, cores // 2))
+        if gpu:
+            scale = max(scale, 8)
+        rollout_budget = (facts.gpu_memory_bytes if gpu else facts.memory_bytes) // 4
+        while scale > 1 and base_envs * scale * n_steps * IMAGE_BYTES > rollout_budget:
+            scale //= 2
+        scale = min(scale, MAX_SCALE)
+        num_envs = max(team, (base_envs * scale) // team * team)
+        reasons["num_envs"] = (f"the task's {base_envs} (sized for 2 cores) x {scale}"
+                               + (" (a GPU learner)" if gpu else f" ({cores} usable cores)"))
+    else:
+        reasons["num_envs"] = "given"
+    if batch_size is None:
+        batch_size = max(2, min(base_batch * max(1, num_envs // base_envs), n_steps * num_envs))
+        reasons["batch_size"] = f"the task's {base_batch} x {max(1, num_envs // base_envs)}: as many minibatches per update, each larger"
+    else:
+        reasons["batch_size"] = "given"
+    if overlap is None:
+        overlap = remote_only or cores >= 4
+        reasons["overlap"] = ("every worker is remote: hide the round trip" if remote_only else
+                              f"{cores} cores: the learner has a core of its own" if overlap else
+                              f"{cores} cores: learner and workers share them; overlapping would make them wait on each other")
+    else:
+        reasons["overlap"] = "given"
+    return HostPlan(facts, device, num_envs, workers, worker_threads, overlap, batch_size, reasons)
+
+
+def _power_of_two_at_most(n: int) -> int:
+    p = 1
+    while p * 2 <= n:
+        p *= 2
+    return p
+
+
+def apply_host_plan(cfg: "TrainConfig", facts: HostFacts | None = None, log: Any = print) -> "TrainConfig":
+    """``cfg`` (unresolved) with the plan's sizes where it leaves them open, and the plan recorded
+    in ``cfg.host_plan``; ``log`` gets one line per choice.
+
+    The plan's ``overlap`` is the tensor trainer's (two agent groups); SB3's ``--overlap`` (a
+    lagged rollout) keeps its own default.
+
+    Raises:
+        ConfigError: ``--device cuda`` without a GPU torch can use.
+    """
+    from dataclasses import replace
+
+    from visfly_dist.tasks import task_class
+    from visfly_dist.training.config import COMMON_DEFAULTS, FALLBACK_DEFAULTS, TASK_DEFAULTS
+
+    device = check_device(cfg.device)
+    facts = facts or HostFacts.probe()
+    base = {**COMMON_DEFAULTS, **TASK_DEFAULTS.get(cfg.task, FALLBACK_DEFAULTS)}
+    task_config = task_class(cfg.task).config_class()
+    team = task_config.agents_per_scene if task_config.multi_agent else 1
+    tensor = cfg.algo == "ppo"
+    plan = plan_host(facts, device, base["num_envs"], base["batch_size"], cfg.n_steps or base["n_steps"],
+                     num_envs=cfg.num_envs, workers=cfg.workers, worker_threads=cfg.worker_threads,
+                     overlap=cfg.overlap if tensor else False, batch_size=cfg.batch_size,
+                     remote_only=cfg.workers == 0, team=team)
+    if not tensor:
+        plan.reasons.pop("overlap", None)
+    for line in plan.lines():
+        log(line)
+    return replace(cfg, device=device, num_envs=plan.num_envs, workers=plan.workers, worker_threads=plan.worker_threads,
+                   batch_size=plan.batch_size, overlap=plan.overlap if tensor else cfg.overlap, host_plan=plan.to_dict())
