@@ -263,7 +263,7 @@ def available_backends() -> tuple[str, ...]:
     out = []
     if importlib.util.find_spec("embreex") is not None or render_native.available():
         out.append("raycast")
-    if importlib.util.find_spec("pyrender") is not None and ctypes.util.find_library("EGL") is not None:
+    if importlib.util.find_spec("OpenGL") is not None and ctypes.util.find_library("EGL") is not None:
         out.append("egl")
     return tuple(out)
 
@@ -300,11 +300,11 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     if requested != "auto":
         if requested not in available:
             raise ConfigError(f"backend {requested!r} is not available here (available: {list(available)}); "
-                              "install its libraries (embreex or the native tracer for raycast; pyrender + libEGL for egl) "
+                              "install its libraries (embreex or the native tracer for raycast; PyOpenGL + libEGL for egl) "
                               "or pick another")
         return requested, "requested"
     if not available:
-        raise ConfigError("no render backend is available; install embreex (raycast) or pyrender + libEGL (egl)")
+        raise ConfigError("no render backend is available; install embreex (raycast) or PyOpenGL + libEGL (egl)")
     if "egl" in available:
         if any(c.kind == "rgb" for c in cameras):
             return "egl", "an RGB camera asks for full materials and textures"
@@ -343,6 +343,6 @@ def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], dro
         from visfly_dist.scene_worker.render_raycast import RaycastRenderer
 
         return RaycastRenderer(scene, cameras, drone_radius, threads=threads, **options)
-    from visfly_dist.scene_worker.render_egl import EglRenderer
+    from visfly_dist.scene_worker.render_egl_batch import BatchEglRenderer
 
-    return EglRenderer(scene, cameras, drone_radius, **options)
+    return BatchEglRenderer(scene, cameras, drone_radius, **options)

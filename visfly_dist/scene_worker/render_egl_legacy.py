@@ -1,4 +1,7 @@
-"""The ``egl`` backend: OpenGL over EGL (a GPU, or Mesa's llvmpipe on a CPU-only host).
+"""The ``egl`` backend as it was before the batch renderer (issue 23): one camera per pass. Bench only.
+
+``visfly-dist bench render --backend egl-legacy`` measures it next to the batch renderer of
+:mod:`visfly_dist.scene_worker.render_egl_batch`, which replaced it as the ``egl`` backend.
 
 Depth and segmentation come from :class:`~visfly_dist.scene_worker.gl_depth_seg.DepthSegPass`: the
 whole scene in one draw call, single-sampled (pixel centres), z-depth computed per fragment in
@@ -10,8 +13,8 @@ at its translation on every render (depth and segmentation draw it at the same o
 Other drones are spheres (an icosphere within 1.8% of ``drone_radius``, exact at its vertices),
 culled to the view; the camera's own drone is left out of its image.
 
-One EGL context per process, made on the first render and kept until the process exits; every
-renderer makes it current before drawing, so render from one thread at a time.
+It draws in the EGL context of :func:`visfly_dist.scene_worker.render_egl.gl_context` (pyrender
+only renders; its pyglet import is kept headless with ``PYGLET_HEADLESS=1``).
 """
 
 from __future__ import annotations
@@ -20,16 +23,16 @@ import os
 from typing import Sequence
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # must precede the first OpenGL import
+os.environ.setdefault("PYGLET_HEADLESS", "1")      # pyrender imports pyglet: no X11 libraries
 
 import numpy as np  # noqa: E402
 import pyrender  # noqa: E402
 import trimesh  # noqa: E402
-from pyrender.platforms import egl  # noqa: E402
 
-from visfly_dist.errors import ConfigError  # noqa: E402
 from visfly_dist.protocol.cameras import CameraSpec  # noqa: E402
 from visfly_dist.scene_worker.camera_math import camera_world_poses, gl_camera_pose, spheres_in_view  # noqa: E402
 from visfly_dist.scene_worker.gl_depth_seg import DepthSegPass  # noqa: E402
+from visfly_dist.scene_worker.render_egl import gl_context  # noqa: E402
 from visfly_dist.scene_worker.render_base import (  # noqa: E402
     AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id, face_rgb,
 )
@@ -39,26 +42,9 @@ RGB_FLAGS = pyrender.RenderFlags.SKIP_CULL_FACES | pyrender.RenderFlags.OFFSCREE
 LIGHT_INTENSITY = 2.0
 DRONE_SUBDIVISIONS = 2   # icosphere of 320 faces: within 1.8% of the radius (4x faster than 1280 faces)
 
-_context: egl.EGLPlatform | None = None
 
-
-def gl_context() -> egl.EGLPlatform:
-    """This process's EGL context (made on first use, on ``EGL_DEVICE_ID`` or device 0), current."""
-    global _context
-    if os.environ["PYOPENGL_PLATFORM"] != "egl":
-        raise ConfigError(f"PYOPENGL_PLATFORM={os.environ['PYOPENGL_PLATFORM']!r} but the egl backend needs 'egl'; "
-                          "unset it or use --backend raycast")
-    if _context is None:
-        device = egl.get_device_by_index(int(os.environ.get("EGL_DEVICE_ID", "0")))
-        context = egl.EGLPlatform(1, 1, device=device)
-        context.init_context()
-        _context = context
-    _context.make_current()
-    return _context
-
-
-class EglRenderer(Renderer):
-    """OpenGL renderer (see the module docstring)."""
+class LegacyEglRenderer(Renderer):
+    """The per-camera OpenGL renderer (see the module docstring)."""
 
     name = "egl"
 

@@ -1,0 +1,765 @@
+"""The ``egl`` backend: every camera of a render call drawn in one OpenGL pass per sensor kind.
+
+Per renderer, once: the scene's triangles go into GPU buffers (depth/segmentation: one indexed
+vertex buffer of positions, object ids and moving-object indices; RGB: one vertex per triangle
+corner with its colour or texture UV and the face normal), textures into one texel buffer, the
+drone sphere into another. A moving obstacle's vertices carry its index; its translation at the
+call's time is a texel of a small buffer updated per call (nothing else is uploaded again).
+
+Per call: every (drone, camera) pair is a *tile* of one framebuffer atlas. The camera poses go
+into a texel buffer (three rows of the world -> eye matrix and the tile's place per tile), then per
+camera of the rig ONE instanced draw of the scene (``gl_InstanceID`` = the tile) and one of the
+other drones (one instance per (tile, drone seen), culled to the view on the CPU; a camera's own
+drone is never drawn). The vertex shader projects with the tile's camera, then moves the clip
+coordinates into the tile's rectangle of the atlas, and four clip distances cut everything to the
+tile's frustum, so a triangle never spills into a neighbour. Tiles of one camera are stacked in
+columns, flipped so that image row 0 is the tile's bottom GL row: reading a column back with
+``glReadPixels`` gives the tiles' images in output order, straight into the output array (one
+read per column; RGB is read as ``(n, H, W, 3)`` and transposed once).
+
+Outputs match the ray tracer: pixels are sampled at their centres (single sample), depth is the
+eye-space z computed per fragment in float32 (``far`` where nothing is hit; nothing nearer than
+``near``), segmentation is the object id (drone ``k``: ``65535 - k``), and RGB is the surface colour
+(face or interpolated vertex colours; textures sampled bilinearly at the UV between texel centres
+with repeat wrapping, times the base colour factor, as :mod:`visfly_dist.scene_worker.shading`
+does) lit by the shared light of :mod:`render_base` (``AMBIENT + (1 - AMBIENT) |n . l|`` with the face
+normal; a drone sphere's normal is exact per pixel) over the sky colour. Drones are icospheres
+within 1.8% of ``drone_radius``.
+
+The context is :func:`visfly_dist.scene_worker.render_egl.gl_context` (the device choice is there).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from typing import Sequence
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # must precede the first OpenGL import
+
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+from visfly_dist.errors import ConfigError  # noqa: E402
+from visfly_dist.protocol.cameras import CameraSpec  # noqa: E402
+from visfly_dist.scene_worker.camera_math import CAMERA_TO_GL, camera_world_poses, spheres_in_view  # noqa: E402
+from visfly_dist.scene_worker.render_base import (  # noqa: E402
+    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id,
+)
+from visfly_dist.scene_worker.render_egl import gl_context  # noqa: E402
+from visfly_dist.scenes.scene import Scene  # noqa: E402
+
+DRONE_SUBDIVISIONS = 2   # icosphere of 320 faces: within 1.8% of the radius
+CHUNK_FACES = int(os.environ.get("VISFLY_EGL_CHUNK", "256"))        # faces per culling chunk
+BIG_FACE_M = 1.0         # faces with a bounding radius above this (m) are chunked apart (walls, floors)
+MAX_ATLAS = 8192         # pixels per side of the atlas at most (also capped by the GL limits)
+KINDS = ("depth", "segmentation", "rgb")
+_TILE_TEXELS = 4         # per tile: 3 rows of the world -> eye matrix, then (place x, place y, 0, 0)
+
+VERTEX_SHADER = """
+layout(location = 0) in vec3 position;
+layout(location = 1) in float object_id;
+layout(location = 2) in float mover;        // index of the moving object, -1: static
+layout(location = 3) in vec3 offset;        // drone instance: sphere centre (scene: constant 0)
+layout(location = 4) in float instance_tile; // the tile (scene: from the instance and tile_base)
+#if KIND == 2
+layout(location = 5) in vec2 uv;
+layout(location = 6) in vec3 colour;        // corner colour, or the texture's factor
+layout(location = 7) in vec3 normal;        // face normal
+layout(location = 8) in float texture_id;   // -1: no texture
+out vec2 v_uv;
+out vec3 v_colour;
+flat out vec3 v_normal;
+flat out float v_texture;
+out vec3 v_world;
+flat out vec3 v_centre;
+#endif
+uniform samplerBuffer tiles;
+uniform samplerBuffer movers;
+uniform bool drones;                        // instances are (tile, drone) pairs, not tiles
+uniform int tile_base;                      // added to instance_tile
+uniform vec4 proj;                          // 2f/w, 2f/h, and the z row of the projection
+uniform vec2 tile_scale;                    // tile size / atlas size
+out float eye_depth;
+flat out float seg_id;
+void main() {
+    int tile = int(instance_tile + 0.5) + tile_base;
+    vec4 r0 = texelFetch(tiles, 4 * tile);
+    vec4 r1 = texelFetch(tiles, 4 * tile + 1);
+    vec4 r2 = texelFetch(tiles, 4 * tile + 2);
+    vec4 place = texelFetch(tiles, 4 * tile + 3);
+    vec3 world = position + offset;
+    if (mover >= 0.0) world += texelFetch(movers, int(mover + 0.5)).xyz;
+    vec4 w = vec4(world, 1.0);
+    vec3 eye = vec3(dot(r0, w), dot(r1, w), dot(r2, w));
+    vec4 clip = vec4(proj.x * eye.x, -proj.y * eye.y, proj.z * eye.z + proj.w, -eye.z);  // rows flipped
+    gl_ClipDistance[0] = clip.w - clip.x;
+    gl_ClipDistance[1] = clip.w + clip.x;
+    gl_ClipDistance[2] = clip.w - clip.y;
+    gl_ClipDistance[3] = clip.w + clip.y;
+    gl_Position = vec4(clip.xy * tile_scale + clip.w * place.xy, clip.zw);
+    eye_depth = -eye.z;
+    seg_id = object_id;
+#if KIND == 2
+    v_uv = uv;
+    v_colour = colour;
+    v_normal = normal;
+    v_texture = texture_id;
+    v_world = world;
+    v_centre = offset;
+#endif
+}
+"""
+
+FRAGMENT_SHADER = """
+in float eye_depth;
+flat in float seg_id;
+#if KIND == 0
+layout(location = 0) out float value;      // draw buffer 0: the depth attachment
+void main() { value = eye_depth; }
+#elif KIND == 1
+layout(location = 1) out uint value;       // draw buffer 1: the segmentation attachment
+void main() { value = uint(seg_id + 0.5); }
+#else
+in vec2 v_uv;
+in vec3 v_colour;
+flat in vec3 v_normal;
+flat in float v_texture;
+in vec3 v_world;
+flat in vec3 v_centre;
+uniform samplerBuffer texels;               // every texture's RGBA8 texels, rows top first
+uniform isamplerBuffer texture_info;        // per texture: first texel, width, height
+uniform bool drones;
+uniform vec3 light;
+uniform float ambient;
+uniform vec3 drone_rgb;
+layout(location = 2) out vec4 value;          // draw buffer 2: the RGB attachment
+vec3 texel(int first, ivec2 size, int x, int y) {
+    x = ((x % size.x) + size.x) % size.x;
+    y = ((y % size.y) + size.y) % size.y;
+    return texelFetch(texels, first + y * size.x + x).rgb * 255.0;
+}
+void main() {
+    vec3 c = v_colour;
+    vec3 n = v_normal;
+    if (drones) {
+        c = drone_rgb;
+        n = normalize(v_world - v_centre);
+    } else if (v_texture >= 0.0) {
+        ivec4 info = texelFetch(texture_info, int(v_texture + 0.5));
+        ivec2 size = info.yz;
+        float x = v_uv.x * float(size.x) - 0.5;
+        float y = (1.0 - v_uv.y) * float(size.y) - 0.5;
+        float x0 = floor(x), y0 = floor(y);
+        float fx = x - x0, fy = y - y0;
+        int ix = int(x0), iy = int(y0);
+        vec3 top = mix(texel(info.x, size, ix, iy), texel(info.x, size, ix + 1, iy), fx);
+        vec3 bottom = mix(texel(info.x, size, ix, iy + 1), texel(info.x, size, ix + 1, iy + 1), fx);
+        c = mix(top, bottom, fy) * v_colour;
+    }
+    float lit = ambient + (1.0 - ambient) * abs(dot(n, light));
+    value = vec4(c * lit / 255.0, 1.0);
+}
+#endif
+"""
+
+_FORMATS = {  # kind -> (internal format, read format, read type, numpy dtype of one channel)
+    "depth": ("GL_R32F", "GL_RED", "GL_FLOAT", np.float32),
+    "segmentation": ("GL_R16UI", "GL_RED_INTEGER", "GL_UNSIGNED_SHORT", np.uint16),
+    "rgb": ("GL_RGBA8", "GL_RGB", "GL_UNSIGNED_BYTE", np.uint8),
+}
+
+
+def _gl():
+    from OpenGL import GL
+
+    return GL
+
+
+class _Buffer:
+    """A GL buffer grown on demand (contents replaced by :meth:`upload`), optionally seen as a texel buffer."""
+
+    def __init__(self, target: int, texture_format: int | None = None) -> None:
+        GL = _gl()
+        self.target, self.size = target, 0
+        self.buffer = GL.glGenBuffers(1)
+        self.texture = None
+        self.texture_format = texture_format
+        if texture_format is not None:
+            self.texture = GL.glGenTextures(1)
+
+    def upload(self, data: np.ndarray) -> None:
+        GL = _gl()
+        data = np.ascontiguousarray(data)
+        nbytes = max(int(data.nbytes), 16)
+        GL.glBindBuffer(self.target, self.buffer)
+        if nbytes > self.size:
+            self.size = max(nbytes, 2 * self.size)
+            GL.glBufferData(self.target, self.size, None, GL.GL_DYNAMIC_DRAW)
+            if self.texture is not None:
+                GL.glBindTexture(GL.GL_TEXTURE_BUFFER, self.texture)
+                GL.glTexBuffer(GL.GL_TEXTURE_BUFFER, self.texture_format, self.buffer)
+        if data.nbytes:
+            GL.glBufferSubData(self.target, 0, data.nbytes, data)
+
+    def delete(self) -> None:
+        GL = _gl()
+        GL.glDeleteBuffers(1, [self.buffer])
+        if self.texture is not None:
+            GL.glDeleteTextures([self.texture])
+
+
+def _morton(points: np.ndarray) -> np.ndarray:
+    """Morton (Z-order) codes of points, 10 bits per axis over their bounding box."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    q = ((points - low) / np.maximum(high - low, 1e-9) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return code
+
+
+class _Geometry:
+    """The scene's triangles reordered into chunks for culling, as arrays to upload.
+
+    Faces are grouped by (moving object or static, closed solid or not, larger than ``BIG_FACE_M``
+    or not); static small faces are in Morton order of their centroids. Every ``CHUNK_FACES`` faces
+    of a group are a chunk, with the bounding sphere of its faces and the enclosing sphere of its
+    objects (a moving object's in its local frame). A *closed* object is watertight with outward
+    winding: seen from outside it, only its front faces can show, so its back faces may be culled.
+
+    ``indexed`` rows are ``position, id, mover`` per vertex and ``indices`` 3 per face; ``corners``
+    (RGB) are per face corner (:func:`_corner_arrays`); ``chunks`` rows are ``first face, end face,
+    centre xyz, radius, mover, closed, solid centre xyz, solid radius``.
+    """
+
+    def __init__(self, scene: Scene, rgb: bool) -> None:
+        moving = scene.moving_objects
+        objects = [o for o in scene.static_objects if len(o.mesh.faces)] + [o for o in moving if len(o.mesh.faces)]
+        movers = {id(o): k for k, o in enumerate(moving)}
+        mover_of = np.array([movers.get(id(o), -1) for o in objects], np.int64)
+        meshes = [o.mesh for o in objects]
+        spheres = np.array([_sphere_row(np.asarray(m.vertices, np.float64)) for m in meshes]).reshape(-1, 4)
+        closed = np.array([_is_closed(m) for m in meshes], bool)
+        vcounts = [len(m.vertices) for m in meshes]
+        vstarts = np.cumsum([0] + vcounts)
+        fcounts = np.array([len(m.faces) for m in meshes], np.int64)
+        positions = np.concatenate([np.zeros((0, 3))] + [np.asarray(m.vertices, np.float64) for m in meshes])
+        faces = np.concatenate([np.zeros((0, 3), np.int64)] + [m.faces + s for m, s in zip(meshes, vstarts)])
+        face_object = np.repeat(np.arange(len(objects)), fcounts)
+        self.indexed = np.zeros((len(positions), 5), np.float32)
+        self.indexed[:, :3] = positions
+        self.indexed[:, 3] = np.repeat([o.object_id for o in objects], vcounts)
+        self.indexed[:, 4] = np.repeat(mover_of, vcounts)
+        corners = positions[faces]                                     # (F, 3, 3)
+        low, high = corners.min(axis=1), corners.max(axis=1)
+        face_mover = mover_of[face_object]
+        face_closed = closed[face_object]
+        big = np.linalg.norm(high - low, axis=1) > 2 * BIG_FACE_M
+        groups = []
+        for is_closed in (False, True):
+            static = (face_mover < 0) & (face_closed == is_closed)
+            groups.append(np.flatnonzero(static & big))
+            small = np.flatnonzero(static & ~big)
+            if len(small):
+                groups.append(small[np.argsort(_morton(0.5 * (low[small] + high[small])), kind="stable")])
+        groups += [np.flatnonzero(face_mover == k) for k in range(len(moving))]
+        order, chunks = [], []
+        start = 0
+        for group in groups:
+            for first in range(0, len(group), CHUNK_FACES):
+                part = group[first:first + CHUNK_FACES]
+                centre, radius = _sphere(corners[part].reshape(-1, 3))
+                owners = np.unique(face_object[part])
+                solid = _enclosing(spheres[owners])
+                chunks.append((start, start + len(part), *centre, radius, float(face_mover[part[0]]),
+                               float(face_closed[part[0]]), *solid))
+                order.append(part)
+                start += len(part)
+        self.order = np.concatenate(order) if order else np.zeros(0, np.int64)
+        self.indices = np.ascontiguousarray(faces[self.order], np.uint32).ravel()
+        self.chunks = np.array(chunks, np.float64).reshape(-1, 12)
+        self.corners, self.texels, self.texture_info = (None, None, None)
+        if rgb:
+            self.corners, self.texels, self.texture_info = _corner_arrays(objects, movers, meshes)
+            self.corners = np.ascontiguousarray(self.corners.reshape(-1, 3, 14)[self.order].reshape(-1, 14))
+
+
+def _sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """A bounding sphere ``(centre, radius)`` of points: the box's centre, the farthest point."""
+    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return centre, float(np.linalg.norm(points - centre, axis=1).max())
+
+
+def _sphere_row(points: np.ndarray) -> np.ndarray:
+    centre, radius = _sphere(points)
+    return np.array([*centre, radius])
+
+
+def _enclosing(spheres: np.ndarray) -> np.ndarray:
+    """A sphere ``[x, y, z, r]`` enclosing every sphere row of ``spheres``."""
+    centre = 0.5 * ((spheres[:, :3] - spheres[:, 3:]).min(axis=0) + (spheres[:, :3] + spheres[:, 3:]).max(axis=0))
+    return np.array([*centre, float((np.linalg.norm(spheres[:, :3] - centre, axis=1) + spheres[:, 3]).max())])
+
+
+def _is_closed(mesh: trimesh.Trimesh) -> bool:
+    """Whether a mesh bounds a solid with outward-wound faces (its back faces never show from outside)."""
+    try:
+        return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+    except Exception:   # degenerate meshes: draw both sides
+        return False
+
+
+def _corner_arrays(objects: list, movers: dict, meshes: list) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, int]]]:
+    """Per triangle corner: ``position 3, id, mover, uv 2, colour 3, normal 3, texture`` (float32, 14),
+    the texels of every texture ``(k, 4)`` uint8 and ``(first texel, width, height)`` per texture."""
+    from visfly_dist.scene_worker.shading import SurfaceShader
+
+    shader = SurfaceShader(meshes)
+    total = int(shader.offsets[-1])
+    out = np.zeros((total, 3, 14), np.float32)
+    out[:, :, 0:3] = shader.vertices[shader.face_vertices]
+    for o, start, stop in zip(objects, shader.offsets[:-1], shader.offsets[1:]):
+        out[start:stop, :, 3] = o.object_id
+        out[start:stop, :, 4] = movers.get(id(o), -1)
+    out[:, :, 7:10] = shader.corner_rgb
+    out[:, :, 10:13] = shader.normals[:, None, :]
+    out[:, :, 13] = -1.0
+    texels, info, first = [], [], 0
+    for k, (start, stop, uv, image, factor) in enumerate(shader._textures):
+        out[start:stop, :, 5:7] = uv
+        out[start:stop, :, 7:10] = factor
+        out[start:stop, :, 13] = k
+        h, w = image.shape[:2]
+        rgba = np.full((h, w, 4), 255, np.uint8)
+        rgba[..., :3] = np.clip(np.round(image), 0, 255)
+        texels.append(rgba.reshape(-1, 4))
+        info.append((first, w, h))
+        first += h * w
+    texels_all = np.concatenate(texels) if texels else np.zeros((1, 4), np.uint8)
+    return out.reshape(-1, 14), texels_all, info
+
+
+class BatchEglRenderer(Renderer):
+    """OpenGL renderer drawing all cameras of a call in one pass per camera (module docstring)."""
+
+    name = "egl"
+
+    def __init__(self, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1) -> None:
+        super().__init__(scene, cameras, drone_radius)
+        self._gl: dict | None = None
+        self._translations = np.zeros((len(self.moving), 3))
+        self._moved = True
+        self._max_side = MAX_ATLAS
+        self._indirect = False
+
+    def _move(self, translations: np.ndarray) -> None:
+        self._translations = np.asarray(translations, np.float64)
+        self._moved = True
+
+    # -- set-up --------------------------------------------------------------------------------
+
+    def _build(self) -> dict:
+        GL = _gl()
+        kinds = sorted({c.kind for c in self.cameras}, key=KINDS.index)
+        version = GL.glGetIntegerv(GL.GL_MAJOR_VERSION) * 10 + GL.glGetIntegerv(GL.GL_MINOR_VERSION)
+        self._indirect = version >= 43 and os.environ.get("VISFLY_EGL_CULL", "1") != "0"
+        s: dict = {"programs": {}, "targets": {}, "fbo": GL.glGenFramebuffers(1), "depth": None, "size": (0, 0),
+                   "vaos": [], "buffers": []}
+        self._max_side = int(min(MAX_ATLAS, GL.glGetIntegerv(GL.GL_MAX_RENDERBUFFER_SIZE),
+                                 *np.ravel(GL.glGetIntegerv(GL.GL_MAX_VIEWPORT_DIMS))))
+        for kind in kinds:
+            program = _link(KINDS.index(kind))
+            s["programs"][kind] = (program, {name: GL.glGetUniformLocation(program, name) for name in (
+                "tiles", "movers", "drones", "tile_base", "proj", "tile_scale", "texels", "texture_info",
+                "light", "ambient", "drone_rgb")})
+        geometry = _Geometry(self.scene, "rgb" in kinds)
+        s["chunks"] = geometry.chunks
+        s["faces"] = len(geometry.indices) // 3
+        for name, fmt in (("tiles", GL.GL_RGBA32F), ("movers", GL.GL_RGBA32F), ("texels", GL.GL_RGBA8),
+                          ("texture_info", GL.GL_RGBA32I)):
+            s[name] = _Buffer(GL.GL_TEXTURE_BUFFER, fmt)
+        s["instances"] = _Buffer(GL.GL_ARRAY_BUFFER)      # drones: per (tile, drone) centre, id, tile
+        s["tile_ids"] = _Buffer(GL.GL_ARRAY_BUFFER)       # scene: per instance its tile (0, 1, ...)
+        s["commands"] = _Buffer(GL.GL_DRAW_INDIRECT_BUFFER)
+        s["movers"].upload(np.zeros((max(len(self.moving), 1), 4), np.float32))
+        s["tile_ids"].upload(np.arange(1024, dtype=np.float32))
+        s["tile_count"] = 1024
+        if {"depth", "segmentation"} & set(kinds):
+            s["vao"] = self._vao(geometry.indexed, geometry.indices, 20, ((0, 3, 0), (1, 1, 3), (2, 1, 4)), s)
+        if "rgb" in kinds:
+            s["corner_vao"] = self._vao(geometry.corners, None, 56, (
+                (0, 3, 0), (1, 1, 3), (2, 1, 4), (5, 2, 5), (6, 3, 7), (7, 3, 10), (8, 1, 13)), s)
+            s["texels"].upload(geometry.texels)
+            s["texture_info"].upload(np.array([(*i, 0) for i in geometry.texture_info] or [(0, 1, 1, 0)], np.int32))
+        sphere = trimesh.creation.icosphere(subdivisions=DRONE_SUBDIVISIONS, radius=max(self.drone_radius, 1e-6))
+        s["drone"] = self._vao(sphere.vertices, sphere.faces.ravel(), 12, ((0, 3, 0),), s, instances=s["instances"])
+        s["drone_count"] = int(sphere.faces.size)
+        GL.glBindVertexArray(0)
+        return s
+
+    def _vao(self, vertices: np.ndarray, indices: np.ndarray | None, stride: int, attributes: tuple, s: dict,
+             instances: _Buffer | None = None) -> int:
+        """A vertex array of ``vertices`` (float32 rows) and ``indices``; per-instance data from
+        ``instances`` (drones: centre, id, tile) or, without it, the tile of each instance."""
+        GL = _gl()
+        vao = GL.glGenVertexArrays(1)
+        GL.glBindVertexArray(vao)
+        data = np.ascontiguousarray(vertices, np.float32)
+        vbo = GL.glGenBuffers(1)
+        GL.glBindBuffer(GL.GL_ARRAY_BUFFER, vbo)
+        GL.glBufferData(GL.GL_ARRAY_BUFFER, max(data.nbytes, 16), data if data.nbytes else None, GL.GL_STATIC_DRAW)
+        s["buffers"].append(vbo)
+        for location, size, offset in attributes:
+            _attribute(location, size, stride, 4 * offset)
+        if indices is not None:
+            ebo = GL.glGenBuffers(1)
+            index_data = np.ascontiguousarray(indices, np.uint32)
+            GL.glBindBuffer(GL.GL_ELEMENT_ARRAY_BUFFER, ebo)
+            GL.glBufferData(GL.GL_ELEMENT_ARRAY_BUFFER, max(index_data.nbytes, 16),
+                            index_data if index_data.nbytes else None, GL.GL_STATIC_DRAW)
+            s["buffers"].append(ebo)
+        if instances is not None:
+            instances.upload(np.zeros((1, 5), np.float32))
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, instances.buffer)
+            _attribute(3, 3, 20, 0, divisor=1)
+            _attribute(1, 1, 20, 12, divisor=1)
+            _attribute(4, 1, 20, 16, divisor=1)
+        else:
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, s["tile_ids"].buffer)
+            _attribute(4, 1, 4, 0, divisor=1)
+        GL.glBindVertexArray(0)
+        s["vaos"].append(vao)
+        return vao
+
+    def _release(self) -> None:
+        if self._gl is None:
+            return
+        GL = _gl()
+        gl_context()
+        s, self._gl = self._gl, None
+        for program, _ in s["programs"].values():
+            GL.glDeleteProgram(program)
+        for name in ("tiles", "movers", "texels", "texture_info", "instances", "tile_ids", "commands"):
+            s[name].delete()
+        GL.glDeleteVertexArrays(len(s["vaos"]), s["vaos"])
+        GL.glDeleteBuffers(len(s["buffers"]), s["buffers"])
+        self._free_targets(s)
+        GL.glDeleteFramebuffers(1, [s["fbo"]])
+
+    def _free_targets(self, s: dict) -> None:
+        GL = _gl()
+        buffers = list(s["targets"].values()) + ([s["depth"]] if s["depth"] else [])
+        if buffers:
+            GL.glDeleteRenderbuffers(len(buffers), buffers)
+        s["targets"], s["depth"], s["size"] = {}, None, (0, 0)
+
+    def _atlas(self, width: int, height: int) -> None:
+        """Make the atlas at least ``width x height`` (grown in steps; one attachment per kind in use)."""
+        GL = _gl()
+        s = self._gl
+        have_w, have_h = s["size"]
+        if width <= have_w and height <= have_h:
+            return
+        w = min(self._max_side, max(width, have_w, -(-width // 256) * 256))
+        h = min(self._max_side, max(height, have_h, -(-height // 256) * 256))
+        kinds = list(s["programs"])
+        self._free_targets(s)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, s["fbo"])
+        names = [int(x) for x in np.atleast_1d(GL.glGenRenderbuffers(len(kinds) + 1))]
+        for name, kind in zip(names, kinds):
+            GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, name)
+            GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, getattr(GL, _FORMATS[kind][0]), w, h)
+            GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_COLOR_ATTACHMENT0 + KINDS.index(kind),
+                                         GL.GL_RENDERBUFFER, name)
+            s["targets"][kind] = name
+        GL.glBindRenderbuffer(GL.GL_RENDERBUFFER, names[-1])
+        GL.glRenderbufferStorage(GL.GL_RENDERBUFFER, GL.GL_DEPTH_COMPONENT32F, w, h)
+        GL.glFramebufferRenderbuffer(GL.GL_FRAMEBUFFER, GL.GL_DEPTH_ATTACHMENT, GL.GL_RENDERBUFFER, names[-1])
+        s["depth"] = names[-1]
+        status = GL.glCheckFramebufferStatus(GL.GL_FRAMEBUFFER)
+        if status != GL.GL_FRAMEBUFFER_COMPLETE:
+            raise ConfigError(f"the egl atlas framebuffer {w}x{h} is incomplete (status 0x{int(status):x})")
+        s["size"] = (w, h)
+
+    # -- rendering -----------------------------------------------------------------------------
+
+    def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
+        n = len(poses)
+        out = {c.name: np.empty((n, *c.shape), c.dtype) for c in self.cameras}
+        self._render_into(poses, show_drones, out)
+        return out
+
+    def _render_into(self, poses: np.ndarray, show_drones: bool, out: dict[str, np.ndarray]) -> None:
+        """Render every camera of ``poses`` into ``out[camera.name]`` ``(n, C, H, W)``."""
+        GL = _gl()
+        gl_context()
+        if self._gl is None:
+            self._gl = self._build()
+        s = self._gl
+        n = len(poses)
+        if self._moved and len(self.moving):
+            s["movers"].upload(np.concatenate([self._translations, np.zeros((len(self.moving), 1))], axis=1)
+                               .astype(np.float32))
+            self._moved = False
+        drones = show_drones and n > 1 and self.drone_radius > 0
+        views, visible, drone_rows = [], [], []
+        for cam in self.cameras:
+            if cam.width > self._max_side or cam.height > self._max_side:
+                raise ConfigError(f"camera {cam.name!r} is {cam.width}x{cam.height}, larger than the egl atlas "
+                                  f"({self._max_side} pixels a side)")
+            origins, rots = camera_world_poses(poses, cam)
+            gl_rot = rots @ CAMERA_TO_GL                              # GL eye axes in the world
+            view = np.zeros((n, _TILE_TEXELS, 4), np.float32)
+            view[:, :3, :3] = np.swapaxes(gl_rot, 1, 2)               # world -> eye rotation
+            view[:, :3, 3] = -np.einsum("aji,aj->ai", gl_rot, origins)
+            views.append(view)
+            visible.append(self._chunks_in_view(cam, origins, rots) if self._indirect else None)
+            drone_rows.append(self._drone_instances(cam, n, poses, origins, rots) if drones else None)
+        # Columns of tiles (camera, first agent, count), left to right; a new pass when the atlas is full.
+        passes, current, x = [], [], 0
+        for c, cam in enumerate(self.cameras):
+            per_column = min(n, self._max_side // cam.height)
+            for a in range(0, n, per_column):
+                if x + cam.width > self._max_side and current:
+                    passes.append(current)
+                    current, x = [], 0
+                current.append((c, a, min(per_column, n - a), x))
+                x += cam.width
+        passes.append(current)
+        GL.glBindFramebuffer(GL.GL_FRAMEBUFFER, s["fbo"])
+        for columns in passes:
+            self._draw_pass(columns, views, visible, drone_rows, out)
+        GL.glBindVertexArray(0)
+
+    def _chunks_in_view(self, cam: CameraSpec, origins: np.ndarray, rots: np.ndarray) -> np.ndarray:
+        """Per camera ``a`` and chunk ``k`` ``(n, K)`` int8: 0 out of view (bounding sphere against the
+        frustum), 1 in view, 2 in view and one-sided (a closed solid whose enclosing sphere is clear
+        of the camera's near rectangle: every pixel's ray starts outside the solid, so it can only
+        meet a front face first)."""
+        chunks = self._gl["chunks"]
+        centres, solids = chunks[:, 2:5].copy(), chunks[:, 8:11].copy()
+        movers = chunks[:, 6].astype(np.int64)
+        if len(self.moving):
+            shift = self._translations[movers[movers >= 0]]
+            centres[movers >= 0] += shift
+            solids[movers >= 0] += shift
+        local = np.einsum("aji,akj->aki", rots, centres[None, :, :] - origins[:, None, :])
+        seen = spheres_in_view(cam, local, chunks[:, 5]).astype(np.int8)
+        reach = cam.near * np.sqrt(1.0 + (0.5 * cam.width / cam.focal_px) ** 2 + (0.5 * cam.height / cam.focal_px) ** 2)
+        clear = np.linalg.norm(solids[None, :, :] - origins[:, None, :], axis=2) > chunks[:, 11] + reach + 1e-6
+        return seen + (seen.astype(bool) & clear & (chunks[:, 7] > 0))
+
+    def _drone_instances(self, cam: CameraSpec, n: int, poses: np.ndarray, origins: np.ndarray,
+                         rots: np.ndarray) -> np.ndarray:
+        """Rows ``[centre xyz, segmentation id, agent]`` of every (agent, other drone in its view) pair."""
+        centres = poses[:, :3]
+        local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])
+        visible = spheres_in_view(cam, local, self.drone_radius) & ~np.eye(n, dtype=bool)
+        agent, other = np.nonzero(visible)
+        rows = np.empty((len(agent), 5), np.float32)
+        rows[:, :3] = centres[other]
+        rows[:, 3] = drone_segmentation_id(other)
+        rows[:, 4] = agent
+        return rows
+
+    def _draw_pass(self, columns: list[tuple[int, int, int, int]], views: list[np.ndarray],
+                   visible: list[np.ndarray | None], drone_rows: list[np.ndarray | None],
+                   out: dict[str, np.ndarray]) -> None:
+        GL = _gl()
+        s = self._gl
+        width = sum(self.cameras[c].width for c, _, _, _ in columns)
+        height = max(self.cameras[c].height * count for c, _, count, _ in columns)
+        self._atlas(width, height)
+        atlas_w, atlas_h = s["size"]
+        # The pass's tiles in column order: view rows and the place of each tile in the atlas.
+        firsts, blocks, tile = [], [], 0
+        for c, a, count, x0 in columns:
+            cam = self.cameras[c]
+            block = views[c][a:a + count].copy()
+            block[:, 3, 0] = (2.0 * x0 + cam.width) / atlas_w - 1.0
+            block[:, 3, 1] = (2.0 * np.arange(count) * cam.height + cam.height) / atlas_h - 1.0
+            blocks.append(block)
+            firsts.append(tile)
+            tile += count
+        s["tiles"].upload(np.concatenate(blocks))
+        if tile > s["tile_count"]:
+            s["tile_count"] = max(tile, 2 * s["tile_count"])
+            s["tile_ids"].upload(np.arange(s["tile_count"], dtype=np.float32))
+        commands = self._commands(columns, firsts, visible) if self._indirect else None
+        GL.glViewport(0, 0, atlas_w, atlas_h)
+        GL.glDisable(GL.GL_CULL_FACE)
+        GL.glDisable(GL.GL_BLEND)
+        GL.glDisable(GL.GL_MULTISAMPLE)
+        GL.glEnable(GL.GL_DEPTH_TEST)
+        GL.glDepthMask(GL.GL_TRUE)
+        GL.glDepthFunc(GL.GL_LESS)
+        for k in range(4):
+            GL.glEnable(GL.GL_CLIP_DISTANCE0 + k)
+        GL.glEnable(GL.GL_SCISSOR_TEST)
+        GL.glScissor(0, 0, width, height)
+        GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
+        for k, ((c, a, count, x0), first) in enumerate(zip(columns, firsts)):
+            cam = self.cameras[c]
+            slot = KINDS.index(cam.kind)
+            GL.glDrawBuffers(slot + 1, [GL.GL_NONE] * slot + [GL.GL_COLOR_ATTACHMENT0 + slot])
+            GL.glScissor(x0, 0, cam.width, cam.height * count)      # draws stay in the column too
+            if cam.kind == "depth":
+                GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([cam.far, 0, 0, 0], np.float32))
+            elif cam.kind == "segmentation":
+                GL.glClearBufferuiv(GL.GL_COLOR, slot, np.zeros(4, np.uint32))
+            else:
+                GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([*(np.asarray(SKY_RGB) / 255.0), 1.0], np.float32))
+            rows = drone_rows[c]
+            if rows is not None:
+                rows = rows[(rows[:, 4] >= a) & (rows[:, 4] < a + count)].copy()
+                rows[:, 4] += first - a
+            self._draw_column(cam, first, count, atlas_w, atlas_h, rows,
+                              None if commands is None else commands[k])
+        GL.glDisable(GL.GL_SCISSOR_TEST)
+        for k in range(4):
+            GL.glDisable(GL.GL_CLIP_DISTANCE0 + k)
+        GL.glPixelStorei(GL.GL_PACK_ALIGNMENT, 1)
+        for c, a, count, x0 in columns:
+            cam = self.cameras[c]
+            _, read_format, read_type, _ = _FORMATS[cam.kind]
+            fmt, kind = getattr(GL, read_format), getattr(GL, read_type)
+            GL.glReadBuffer(GL.GL_COLOR_ATTACHMENT0 + KINDS.index(cam.kind))
+            dest = out[cam.name][a:a + count]
+            if cam.kind == "rgb":
+                staging = np.empty((count, cam.height, cam.width, 3), np.uint8)
+                _read(x0, cam.width, cam.height * count, fmt, kind, staging)
+                dest[...] = staging.transpose(0, 3, 1, 2)
+            elif dest.flags.c_contiguous:
+                _read(x0, cam.width, cam.height * count, fmt, kind, dest)
+            else:
+                staging = np.empty(dest.shape, dest.dtype)
+                _read(x0, cam.width, cam.height * count, fmt, kind, staging)
+                dest[...] = staging
+
+    def _commands(self, columns: list[tuple[int, int, int, int]], firsts: list[int],
+                  visible: list[np.ndarray]) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+        """Upload the indirect draws of every column: per tile, the runs of its chunks in view, apart
+        for two-sided and one-sided (back faces culled) chunks. Per column ``((byte offset, draws)
+        two-sided, (byte offset, draws) one-sided)`` in the command buffer."""
+        chunks = self._gl["chunks"]
+        parts, spans, total = [], [], 0
+        for (c, a, count, _), first in zip(columns, firsts):
+            seen = visible[c][a:a + count]
+            rgb = self.cameras[c].kind == "rgb"
+            column = []
+            for code in (1, 2):
+                padded = np.zeros((count, len(chunks) + 2), bool)
+                padded[:, 1:-1] = seen == code
+                starts = np.argwhere(padded[:, 1:-1] & ~padded[:, :-2])        # (tile, first chunk of a run)
+                ends = np.argwhere(padded[:, 1:-1] & ~padded[:, 2:])           # (tile, last chunk of a run)
+                face0, face1 = chunks[starts[:, 1], 0], chunks[ends[:, 1], 1]
+                rows = np.zeros((len(starts), 4 if rgb else 5), np.uint32)
+                rows[:, 0] = 3 * (face1 - face0)
+                rows[:, 1] = 1
+                rows[:, 2] = 3 * face0
+                rows[:, -1] = first + starts[:, 0]                             # base instance: the tile
+                parts.append(rows.view(np.uint8).ravel())
+                column.append((total, len(rows)))
+                total += rows.nbytes
+            spans.append(tuple(column))
+        self._gl["commands"].upload(np.concatenate(parts))
+        return spans
+
+    def _draw_column(self, cam: CameraSpec, first: int, count: int, atlas_w: int, atlas_h: int,
+                     drone_rows: np.ndarray | None, commands: tuple | None) -> None:
+        """Draw the scene and the drones seen into one column's ``count`` tiles (first tile ``first``)."""
+        GL = _gl()
+        s = self._gl
+        program, u = s["programs"][cam.kind]
+        GL.glUseProgram(program)
+        f, near, far = cam.focal_px, cam.near, cam.far
+        GL.glUniform4f(u["proj"], 2.0 * f / cam.width, 2.0 * f / cam.height,
+                       -(far + near) / (far - near), -2.0 * far * near / (far - near))
+        GL.glUniform2f(u["tile_scale"], cam.width / atlas_w, cam.height / atlas_h)
+        _bind_texture(0, s["tiles"].texture, u["tiles"])
+        _bind_texture(1, s["movers"].texture, u["movers"])
+        rgb = cam.kind == "rgb"
+        if rgb:
+            _bind_texture(2, s["texels"].texture, u["texels"])
+            _bind_texture(3, s["texture_info"].texture, u["texture_info"])
+            GL.glUniform3f(u["light"], *LIGHT_DIRECTION)
+            GL.glUniform1f(u["ambient"], AMBIENT)
+            GL.glUniform3f(u["drone_rgb"], *(float(v) for v in DRONE_RGB))
+        GL.glUniform1i(u["drones"], 0)
+        GL.glVertexAttrib3f(3, 0.0, 0.0, 0.0)   # the scene has no instance offset
+        if s["faces"]:
+            GL.glBindVertexArray(s["corner_vao"] if rgb else s["vao"])
+            if commands is not None:      # per tile, the runs of chunks in its view
+                GL.glBindBuffer(GL.GL_DRAW_INDIRECT_BUFFER, s["commands"].buffer)
+                GL.glUniform1i(u["tile_base"], 0)
+                for (offset, draws), one_sided in zip(commands, (False, True)):
+                    if one_sided:   # outward faces are counter-clockwise, clockwise on the flipped tiles
+                        GL.glEnable(GL.GL_CULL_FACE)
+                        GL.glFrontFace(GL.GL_CW)
+                        GL.glCullFace(GL.GL_BACK)
+                    if draws and rgb:
+                        GL.glMultiDrawArraysIndirect(GL.GL_TRIANGLES, ctypes.c_void_p(offset), draws, 0)
+                    elif draws:
+                        GL.glMultiDrawElementsIndirect(GL.GL_TRIANGLES, GL.GL_UNSIGNED_INT, ctypes.c_void_p(offset),
+                                                       draws, 0)
+                GL.glDisable(GL.GL_CULL_FACE)
+            else:                         # every tile draws everything
+                GL.glUniform1i(u["tile_base"], first)
+                if rgb:
+                    GL.glDrawArraysInstanced(GL.GL_TRIANGLES, 0, 3 * s["faces"], count)
+                else:
+                    GL.glDrawElementsInstanced(GL.GL_TRIANGLES, 3 * s["faces"], GL.GL_UNSIGNED_INT,
+                                               ctypes.c_void_p(0), count)
+        if drone_rows is None or not len(drone_rows):
+            return
+        GL.glVertexAttrib1f(2, -1.0)              # drones do not move with an obstacle
+        s["instances"].upload(drone_rows)
+        GL.glBindVertexArray(s["drone"])
+        GL.glUniform1i(u["drones"], 1)
+        GL.glUniform1i(u["tile_base"], 0)
+        GL.glDrawElementsInstanced(GL.GL_TRIANGLES, s["drone_count"], GL.GL_UNSIGNED_INT, ctypes.c_void_p(0),
+                                   len(drone_rows))
+
+
+def _attribute(location: int, size: int, stride: int, offset: int, divisor: int = 0) -> None:
+    GL = _gl()
+    GL.glEnableVertexAttribArray(location)
+    GL.glVertexAttribPointer(location, size, GL.GL_FLOAT, GL.GL_FALSE, stride, ctypes.c_void_p(offset))
+    if divisor:
+        GL.glVertexAttribDivisor(location, divisor)
+
+
+def _bind_texture(unit: int, texture: int, location: int) -> None:
+    GL = _gl()
+    GL.glActiveTexture(GL.GL_TEXTURE0 + unit)
+    GL.glBindTexture(GL.GL_TEXTURE_BUFFER, texture)
+    GL.glUniform1i(location, unit)
+
+
+def _read(x: int, width: int, height: int, fmt: int, kind: int, dest: np.ndarray) -> None:
+    """``glReadPixels`` of the atlas rectangle ``[x, x + width) x [0, height)`` into ``dest`` (C-contiguous)."""
+    from OpenGL.raw.GL.VERSION.GL_1_0 import glReadPixels
+
+    glReadPixels(x, 0, width, height, fmt, kind, ctypes.c_void_p(dest.ctypes.data))
+
+
+def _link(kind: int) -> int:
+    GL = _gl()
+    program = GL.glCreateProgram()
+    shaders = []
+    for stage, source in ((GL.GL_VERTEX_SHADER, VERTEX_SHADER), (GL.GL_FRAGMENT_SHADER, FRAGMENT_SHADER)):
+        shader = GL.glCreateShader(stage)
+        GL.glShaderSource(shader, f"#version 330 core\n#define KIND {kind}\n{source}")
+        GL.glCompileShader(shader)
+        if not GL.glGetShaderiv(shader, GL.GL_COMPILE_STATUS):
+            raise ConfigError(f"egl shader failed to compile: {GL.glGetShaderInfoLog(shader)!r}")
+        GL.glAttachShader(program, shader)
+        shaders.append(shader)
+    GL.glLinkProgram(program)
+    if not GL.glGetProgramiv(program, GL.GL_LINK_STATUS):
+        raise ConfigError(f"egl shaders failed to link: {GL.glGetProgramInfoLog(program)!r}")
+    for shader in shaders:
+        GL.glDeleteShader(shader)
+    return program
