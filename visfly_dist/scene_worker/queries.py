@@ -136,14 +136,8 @@ class ObstacleQueries:
 
     def _build_parity(self, vertices: np.ndarray, faces: np.ndarray, objects: list) -> None:
         """Embree scene of the solids' triangles, their component ids and boxes."""
-        face_component, solid, offset = [], [], 0
-        for obj in objects:
-            components, is_solid = solid_components(obj.mesh.vertices, obj.mesh.faces)
-            face_component.append(components + offset)
-            solid.append(is_solid)
-            offset += len(is_solid)
-        face_component = np.concatenate(face_component)
-        solid = np.concatenate(solid)
+        groups = np.repeat(np.arange(len(objects)), [len(o.mesh.vertices) for o in objects])
+        face_component, solid = solid_components(vertices, faces, groups)  # one call for every object
         keep = solid[face_component]
         if not keep.any():
             return

@@ -23,12 +23,15 @@ MERGE_TOLERANCE = 1e-6
 """Vertices closer than this (metres, per coordinate, on a grid) are the same vertex."""
 
 
-def solid_components(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def solid_components(vertices: np.ndarray, faces: np.ndarray, groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Connected components of a triangle mesh and whether each is solid (module docstring).
 
     Args:
         vertices: ``(V, 3)`` positions.
         faces: ``(F, 3)`` vertex indices.
+        groups: ``(V,)`` ints: vertices of different groups are never merged, so several objects
+            concatenated into one mesh (one call instead of one per object) keep their components
+            apart even where they touch.
 
     Returns:
         ``(face_component (F,) int64, solid (C,) bool)``: the component of every face (0..C-1)
@@ -39,6 +42,8 @@ def solid_components(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarra
         return np.zeros(0, np.int64), np.zeros(0, bool)
     vertices = np.asarray(vertices, dtype=np.float64)
     keys = np.round(vertices / MERGE_TOLERANCE).astype(np.int64)
+    if groups is not None:
+        keys = np.column_stack((np.asarray(groups, dtype=np.int64).reshape(-1), keys))
     _, merged = np.unique(keys, axis=0, return_inverse=True)
     f = merged.reshape(-1)[faces]
     n = int(f.max()) + 1
