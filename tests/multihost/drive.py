@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import threading
 
@@ -23,6 +24,7 @@ def main() -> int:
     parser.add_argument("--zenoh-config", default=None)
     parser.add_argument("--report-every", type=int, default=20)
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s trainer %(levelname)s %(message)s")
 
     import torch
 

@@ -83,6 +83,7 @@ class Host:
             return err.read().decode(errors="replace")
 
         proc.stderr_text = stderr_text
+        proc.argv, proc.host = list(argv), self
         proc.lines = queue.Queue()
         threading.Thread(target=_pump, args=(proc,), daemon=True).start()
         self.lan.procs.append(proc)

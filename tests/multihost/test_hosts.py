@@ -69,7 +69,16 @@ def wait_report(trainer, condition: Callable[[dict], bool], timeout: float, what
         if "steps" in last and condition(last):
             return last
     pytest.fail(f"trainer: {what} not seen within {timeout} s; last report {last}; exit {trainer.poll()}; "
-                f"stderr tail: {trainer.stderr_text()[-3000:]}")
+                f"stderr tail: {trainer.stderr_text()[-3000:]}\n{others_stderr(trainer)}")
+
+
+def others_stderr(trainer) -> str:
+    """The stderr tails of the lan's other processes (routers, workers), to tell why a report did not come."""
+    out = []
+    for proc in trainer.host.lan.procs:
+        if proc is not trainer:
+            out.append(f"--- {proc.host.name}: {' '.join(proc.argv[3:])[:160]} (exit {proc.poll()}):\n{proc.stderr_text()[-1500:]}")
+    return "\n".join(out)
 
 
 def serving(report: dict) -> set[str]:

@@ -192,6 +192,7 @@ class Aggregator:
         self._background: list[_Background] = []
         self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
         self._stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
+        self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._collects = 0
         self._spawn_pools: dict[tuple, np.ndarray] = {}
         self._spawn_draws: dict[tuple, int] = {}
@@ -524,6 +525,33 @@ class Aggregator:
         back = [w for w in live if w in self._stale]
         self._send_unloads([(w, k) for w in back for k in sorted(self._stale.pop(w))])
 
+    def _reconcile(self, gens: dict[str, int]) -> None:
+        """Ask each worker that (re)appeared which scenes it holds (a background health request);
+        :meth:`_finish_reconcile` unloads those the run does not know of. Replies lost in an outage
+        (a router killed while loads were in flight) leave such scenes behind."""
+        due = [w for w, g in gens.items() if self._reconciled.get(w) != g]
+        for w in due:
+            self._reconciled[w] = gens[w]
+        requests = [(w, Health().to_message()) for w in due]
+        for wid, pending in zip(due, self._pool.send(requests, self.pool_config.step_timeout_s) if due else []):
+            self._background.append(_Background("reconcile", pending, spec=(wid, gens[wid])))
+
+    def _finish_reconcile(self, job: _Background, reply: Reply) -> None:
+        worker, generation = job.spec  # type: ignore[misc]
+        if reply.message is None:  # asked again when it is next seen (its failures are handled where it serves)
+            if self._reconciled.get(worker) == generation:
+                del self._reconciled[worker]
+            return
+        known = {s.key for s in self.table.slots if s.worker == worker}
+        known |= {s.move.key for s in self.table.slots if s.move is not None and s.move.worker == worker}
+        known |= {k for _, w, k in self._unloads if w == worker} | self._stale.get(worker, set())
+        known |= {j.spec[1] for j in self._background if j.kind == "unload" and j.spec[0] == worker}
+        unknown = sorted((set(reply.message.get("scenes", [])) | set(reply.message.get("loading", []))) - known)
+        if unknown:
+            log.warning("run %s: worker %s holds scenes %s that the run does not serve (their load replies "
+                        "were lost); unloading them", self.run_id, worker, unknown)
+            self._send_unloads([(worker, k) for k in unknown])
+
     def _send_unloads(self, targets: Sequence[tuple[str, str]]) -> None:
         """Ask each ``(worker, key)`` to unload in the background; one that gets no reply is retried
         when the worker is next seen live (:meth:`_apply_background`)."""
@@ -548,8 +576,10 @@ class Aggregator:
     def _maintain(self) -> None:
         """Orphan slots of dead or restarted workers; start loads for orphans; rebalance; wait out outages."""
         self._pool.respawn_exited()
+        self._pool.recheck_banned()
         live = self._pool.live_workers()
         gens = {w: self._pool.generation(w) for w in live}
+        self._reconcile(gens)
         settled = (self.table.revision, tuple(gens.items()))
         if settled == self._settled and not (self._background or self._stale or self._pending_switch):
             return  # nothing changed since a pass that found nothing to do: it would find nothing again
@@ -606,6 +636,8 @@ class Aggregator:
                 self._finish_load(job, reply, still)
             elif job.kind == "spawn":
                 self._finish_spawn(job, reply, still)
+            elif job.kind == "reconcile":
+                self._finish_reconcile(job, reply)
             elif reply.failure is not None:  # an unload lost on the way (a flapping link): try again later
                 worker, key = job.spec
                 self._stale.setdefault(worker, set()).add(key)
@@ -619,10 +651,13 @@ class Aggregator:
             if reply.error is not None and not is_unknown_scene(reply.error):
                 raise RemoteError(move.worker, reply.error.error_type,
                                   f"loading {move.source!r} into slot {job.slot}: {reply.error.message}")
+            if reply.failure is not None:  # the load may still end on the worker: unload it when it is back
+                self._stale.setdefault(move.worker, set()).add(move.key)
             self._handle_failure(reply)
             return
-        if self.table.slots[job.slot].move is not move:
-            return  # cancelled (its worker failed meanwhile)
+        if self.table.slots[job.slot].move is not move:  # cancelled (its worker failed meanwhile): not used
+            self._stale.setdefault(move.worker, set()).add(move.key)
+            return
         move_bounds = reply.message["bounds"]
         move_meta = reply.message.get("metadata", {})
         specs = {k[2] for k in self._spawn_pools if k[0] == job.slot}
@@ -709,8 +744,9 @@ class Aggregator:
         slot, source, spec = job.spec  # type: ignore[misc]
         switch = self._pending_switch.get(slot)
         if reply.message is None:
-            if switch is not None:
+            if switch is not None:  # the swap's scene is loaded but will not be used
                 self.table.fail_move(slot, switch[0])
+                self._stale.setdefault(switch[0].worker, set()).add(switch[0].key)
                 del self._pending_switch[slot]
             if reply.error is not None and not is_unknown_scene(reply.error):
                 raise reply.error

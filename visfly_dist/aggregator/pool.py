@@ -17,6 +17,11 @@ Invariants (Zenoh 1.x behaviour, see docs/ARCHITECTURE.md):
   the worker reporting a problem with the request.
 - Local workers are spawned with subprocess (fork + exec, safe after the session opened) and are
   stopped on close, SIGTERM first, then SIGKILL after a grace period; the session is closed too.
+- A ban is not for ever: a banned worker whose token stays is sent a health probe now and then
+  (:meth:`WorkerPool.recheck_banned`, every :data:`RECHECK_S`, backing off), and one that answers
+  is taken back, with a new generation. A request lost in a transient (the router restarting, a
+  route not yet rebuilt) must not cost a healthy remote worker for the rest of the run: nothing
+  else would lift its ban, since its token never goes.
 - A local worker whose request got no answer is probed with a health request (small, so never in
   shared memory; :data:`PROBE_TIMEOUT_S`) before it is killed. One that answers is alive and kept;
   :mod:`.lost_requests` decides when such cases mean the learner's side is broken (the run fails
@@ -53,6 +58,8 @@ STOP_GRACE_S = 5.0
 POLL_S = 0.02
 LIVELINESS_QUEUE = 4096
 PROBE_TIMEOUT_S = 1.0  # a health reply takes milliseconds; a hung worker costs this much more before it is replaced
+RECHECK_S = (1.0, 16.0)
+"""First and longest wait between health probes of a banned worker whose token stays (doubling in between)."""
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -147,6 +154,7 @@ class WorkerPool:
         self._replies = threading.Condition()
         self._user: str | None = None
         self._lost = LostRequests(config.lost_request_limit)
+        self._recheck: dict[str, tuple[float, float, Pending | None]] = {}  # banned -> (next probe, wait, probe in flight)
 
     # ----- lifecycle -------------------------------------------------------------------------
 
@@ -214,11 +222,40 @@ class WorkerPool:
             else:
                 self._alive.discard(wid)
                 self._banned.discard(wid)
+                self._recheck.pop(wid, None)
 
     def live_workers(self) -> list[str]:
         """Ids of the workers that are alive and not banned, sorted."""
         self._poll_liveliness()
         return sorted(self._alive - self._banned)
+
+    def recheck_banned(self) -> list[str]:
+        """Probe banned workers whose token stays (never blocks); take back those that answered.
+
+        Call it often (every step does): a probe is sent at most every :data:`RECHECK_S` per worker,
+        the wait doubling after each unanswered one. A worker taken back gets a new generation, as
+        if it had restarted: the caller treats what it held as gone. Returns the workers taken back.
+        """
+        if not self._banned:
+            return []
+        self._poll_liveliness()
+        now, back = time.monotonic(), []
+        for wid in sorted(self._banned & self._alive):
+            due, wait, probe = self._recheck.get(wid, (now + RECHECK_S[0], RECHECK_S[0], None))
+            if probe is not None and probe.done():
+                if self.result(probe).message is not None:
+                    log.warning("run %s: worker %s answers again; taking it back", self.run_id, wid)
+                    self._banned.discard(wid)
+                    self._recheck.pop(wid, None)
+                    self._generation[wid] = self._generation.get(wid, 0) + 1
+                    back.append(wid)
+                    continue
+                probe, wait = None, min(2 * wait, RECHECK_S[1])
+                due = now + wait
+            if probe is None and now >= due:
+                (probe,) = self.send([(wid, Health().to_message())], PROBE_TIMEOUT_S)
+            self._recheck[wid] = (due, wait, probe)
+        return back
 
     def generation(self, worker_id: str) -> int:
         """How many times this worker's token appeared (a new value means it restarted)."""
@@ -236,6 +273,7 @@ class WorkerPool:
         while True:
             if remote_may_join:
                 self.respawn_exited()
+            self.recheck_banned()  # after an outage, a worker may be banned for a request the outage lost
             live = set(self.live_workers())
             starting = [w for w in self._local.values() if w.worker_id not in live and w.running()]
             missing = [w for w in required if w not in live and w in self._local and self._local[w].running()]
@@ -333,6 +371,7 @@ class WorkerPool:
         self._poll_liveliness()
         if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
             self._banned.add(worker_id)
+            self._recheck.pop(worker_id, None)  # the first probe of this ban comes RECHECK_S[0] from now
         if not replace or worker_id not in self._local:
             return None
         worker = self._local.pop(worker_id)
