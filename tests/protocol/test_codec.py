@@ -162,3 +162,68 @@ def test_decoded_arrays_view_the_payload_in_place():
     out = decode(payload)
     np.testing.assert_array_equal(out["images"]["depth"], images)
     assert out["images"]["depth"].base is not None and np.shares_memory(out["images"]["depth"], np.frombuffer(payload, np.uint8))
+
+
+@pytest.mark.parametrize("marker", [
+    True, 1.0, 2, 0, "1", None, [1],
+])
+def test_only_the_exact_int_marker_makes_an_array(marker):
+    """``{"__nd__": true}`` and ``1.0`` equal 1 in Python, but only the int 1 is the marker."""
+    bad = {**_nd(), "__nd__": marker}
+    with pytest.raises(ProtocolError, match="must be exactly an array marker"):
+        decode(_raw({"version": PROTOCOL_VERSION, "type": "x", "a": bad}))
+
+
+@pytest.mark.parametrize("change", ["drop_dtype", "drop_nbytes", "extra_key"])
+def test_an_array_marker_has_exactly_its_five_keys(change):
+    bad = _nd()
+    if change == "extra_key":
+        bad["note"] = "x"
+    else:
+        del bad[change.removeprefix("drop_")]
+    with pytest.raises(ProtocolError, match="must be exactly an array marker"):
+        decode(_raw({"version": PROTOCOL_VERSION, "type": "x", "a": bad}))
+
+
+def test_fuzzed_array_markers_are_refused_or_decoded_exactly():
+    """Mutated markers (values of every msgpack type in every field, keys dropped or added), nested
+    at any depth: decode either raises ProtocolError or returns the exact array the marker names."""
+    rng = np.random.default_rng(7)
+    tail = np.arange(16, dtype=np.float32).tobytes()
+    values = [True, False, 1, 1.0, 0, -1, 2, 8, 64, 2**63 - 1, -(2**63), "1", "<f4", "|O", "<f8", None, [], [2], [4, 4],
+              [True], [2.0], {}, {"__nd__": 1}, b"\x01"]
+    decoded = refused = 0
+    for _ in range(3000):
+        marker = _nd(shape=(int(rng.integers(0, 5)),), offset=int(rng.integers(0, 3)) * 4, nbytes=0)
+        marker["nbytes"] = 4 * marker["shape"][0]
+        for _ in range(int(rng.integers(0, 3))):
+            op = rng.integers(0, 3)
+            key = ["__nd__", "dtype", "shape", "offset", "nbytes", "extra"][int(rng.integers(0, 6))]
+            if op == 0:
+                marker[key] = values[int(rng.integers(0, len(values)))]
+            elif op == 1:
+                marker.pop(key, None)
+        obj, path = marker, []
+        for _ in range(int(rng.integers(0, 3))):
+            obj, step = ({"nested": obj}, "nested") if rng.integers(0, 2) else ([obj], 0)
+            path.insert(0, step)
+        payload = _raw({"version": PROTOCOL_VERSION, "type": "x", "a": obj}, tail)
+        try:
+            out = decode(payload)["a"]
+        except ProtocolError:
+            refused += 1
+            continue
+        for step in path:
+            out = out[step]
+        if "__nd__" not in marker:  # a plain map: it stays one
+            assert out == marker
+            continue
+        exact = (marker.keys() == {"__nd__", "dtype", "shape", "offset", "nbytes"} and type(marker["__nd__"]) is int
+                 and marker["__nd__"] == 1)
+        assert exact, marker
+        assert isinstance(out, np.ndarray) and out.dtype == np.dtype(marker["dtype"])
+        assert list(out.shape) == marker["shape"] and out.nbytes == marker["nbytes"]
+        start = marker["offset"]
+        assert out.tobytes() == tail[start:start + out.nbytes]
+        decoded += 1
+    assert decoded > 100 and refused > 100, (decoded, refused)

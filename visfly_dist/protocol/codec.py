@@ -7,6 +7,8 @@ Framing: ``b"VFD1"``, a little-endian ``u32`` header length, the msgpack header,
 of every array, back to back. An array in the header is the map ``{"__nd__": 1, "dtype": "<f4",
 "shape": [n, 7], "offset": o, "nbytes": b}`` pointing into that tail, so the receiver views images in
 place (``np.frombuffer`` on the payload, no copy) and the sender writes each array's bytes once.
+The key ``__nd__`` is reserved: a map holding it must be exactly that marker (the int ``1``, not
+``true`` or ``1.0``, and those five keys, no other), or the message is refused.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ ALLOWED_DTYPES = frozenset(
     np.dtype(t).str for t in ("bool", "uint8", "uint16", "int32", "int64", "float32", "float64")
 )
 _ND = "__nd__"
+_ND_KEYS = frozenset({_ND, "dtype", "shape", "offset", "nbytes"})
 MAGIC = b"VFD1"
 _PREFIX = struct.Struct("<4sI")
 
@@ -60,9 +63,13 @@ def _array_hook(payload: bytes, tail_start: int):
     tail_size = len(payload) - tail_start
 
     def hook(d: dict) -> Any:
-        if d.get(_ND) != 1:
+        if _ND not in d:
             return d
-        dtype, shape, offset, nbytes = d.get("dtype"), d.get("shape"), d.get("offset"), d.get("nbytes")
+        if type(d[_ND]) is not int or d[_ND] != 1 or d.keys() != _ND_KEYS:  # True == 1 and 1.0 == 1: refused
+            raise ProtocolError(f"a map holding {_ND!r} must be exactly an array marker {{{_ND!r}: 1, 'dtype', "
+                                f"'shape', 'offset', 'nbytes'}}; got keys {sorted(map(str, d))} with {_ND!r}: "
+                                f"{d[_ND]!r}")
+        dtype, shape, offset, nbytes = d["dtype"], d["shape"], d["offset"], d["nbytes"]
         if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
             raise ProtocolError(f"array dtype {dtype!r} not allowed; allowed: {sorted(ALLOWED_DTYPES)}")
         if not isinstance(shape, list) or len(shape) > 8 or not all(
