@@ -53,3 +53,45 @@ def test_fails_clearly_when_impossible():
     with pytest.raises(SceneError, match=r"a=\[1, 2\] must be a finite scalar or 3-vector"):
         sample_free_positions(1, 0.1, "normal", [1, 2], 1, rng, cube_distance)
     assert sample_free_positions(0, 0.1, "uniform", 0, 1, rng, cube_distance).shape == (0, 3)
+
+
+class Counted:
+    """``cube_distance`` that counts the points it was asked about."""
+
+    def __init__(self) -> None:
+        self.points = 0
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        self.points += len(points)
+        return cube_distance(points)
+
+
+def test_a_region_outside_the_flight_box_fails_before_any_draw_naming_the_axis():
+    distance = Counted()
+    bounds = [[-3, -3, 0], [3, 3, 4]]
+    with pytest.raises(SceneError, match=r"region \(z in \[5, 6\]\) lies outside the flight box \(z in \[0.5, 3.5\], "
+                                         r"the bounds shrunk by the clearance\) on axis z"):
+        sample_free_positions(4, 0.5, "uniform", [-1, -1, 5], [1, 1, 6], np.random.default_rng(0), distance,
+                              bounds=bounds)
+    with pytest.raises(SceneError, match=r"mean z=9 with std 0 lies outside the flight box"):
+        sample_free_positions(4, 0.5, "normal", [2, 2, 9], [1, 1, 0], np.random.default_rng(0), distance,
+                              bounds=bounds)
+    assert distance.points == 0
+
+
+def test_a_region_within_the_clearance_of_obstacles_fails_after_a_few_hundred_distances():
+    distance = Counted()
+    with pytest.raises(SceneError, match=r"every point of the region lies within the clearance of obstacles \(none can "
+                                         r"be farther than 0.11\d m from one\)"):
+        sample_free_positions(1, 0.5, "uniform", [0.5, -0.1, -0.1], [0.6, 0.1, 0.1], np.random.default_rng(0),
+                              distance)
+    assert distance.points <= 8 ** 3  # the grid only: not 100,000 draws
+
+
+def test_an_unlucky_region_names_the_constraints_that_rejected_its_draws():
+    # Possible (corners of the region are 0.87 m from the cube) but rare: the counts say why it failed.
+    with pytest.raises(SceneError, match=r"found only \d+ of 50 positions .* after 640 tries: \d+ fell outside the "
+                                         r"flight box .*; \d+ were closer than the clearance to an obstacle \(\d+ of "
+                                         r"them inside one; the farthest drawn point was 0.\d+ m from any obstacle\)"):
+        sample_free_positions(50, 0.55, "uniform", -1.0, 1.0, np.random.default_rng(0), cube_distance,
+                              bounds=[[-1.02, -1.02, -1.02], [3, 3, 0.2]], max_tries=640)

@@ -60,8 +60,15 @@ def sample_free_positions(
         if np.any(box[0] > box[1]):
             raise SceneError(f"bounds {bounds.tolist()} shrunk by clearance={clearance} leave no room; lower the clearance")
 
+    where = (f"{distribution} region a={a.tolist()}, b={b.tolist()}"
+             + (f" within bounds {bounds.tolist()}" if bounds is not None else ""))
+    if n == 0:
+        return np.zeros((0, 3))
+    _refuse_impossible(n, clearance, distribution, a, b, box, distance_fn, where)
+
     found: list[np.ndarray] = []
-    count = tried = 0
+    count = tried = outside = close = inside = 0
+    farthest = -np.inf
     while count < n and tried < max_tries:
         batch = int(min(max_tries - tried, max(64, 4 * (n - count))))
         points = rng.uniform(a, b, size=(batch, 3)) if distribution == "uniform" else rng.normal(a, b, size=(batch, 3))
@@ -69,18 +76,69 @@ def sample_free_positions(
         keep = np.ones(batch, dtype=bool)
         if box is not None:
             keep &= np.all((points >= box[0]) & (points <= box[1]), axis=1)
+            outside += batch - int(keep.sum())
         if keep.any():
             distance = np.asarray(distance_fn(points[keep]), dtype=np.float64).reshape(-1)
-            keep[keep] = distance >= clearance
+            clear = distance >= clearance
+            close += int((~clear).sum())
+            inside += int((distance <= 0).sum())
+            farthest = max(farthest, float(distance.max()))
+            keep[keep] = clear
         found.append(points[keep])
         count += int(keep.sum())
     if count < n:
+        reasons = []
+        if outside:
+            reasons.append(f"{outside} fell outside the flight box (bounds shrunk by the clearance)")
+        if close:
+            reasons.append(f"{close} were closer than the clearance to an obstacle ({inside} of them inside one; "
+                           f"the farthest drawn point was {farthest:.3g} m from any obstacle)")
         raise SceneError(
-            f"found only {count} of {n} positions with clearance={clearance} m in {distribution} region "
-            f"a={a.tolist()}, b={b.tolist()}" + (f" within bounds {bounds.tolist()}" if bounds is not None else "")
-            + f" after {tried} tries; widen the region, lower the clearance, or raise max_tries"
+            f"found only {count} of {n} positions with clearance={clearance} m in {where} after {tried} tries: "
+            + "; ".join(reasons) + "; widen the region, lower the clearance, or raise max_tries"
         )
-    return np.concatenate(found)[:n] if found else np.zeros((0, 3))
+    return np.concatenate(found)[:n]
+
+
+GRID_CELLS = 8
+"""Cells per axis of the grid that :func:`_refuse_impossible` checks a uniform region with."""
+
+
+def _refuse_impossible(n: int, clearance: float, distribution: str, a: np.ndarray, b: np.ndarray, box,
+                       distance_fn: Callable[[np.ndarray], np.ndarray], where: str) -> None:
+    """SceneError before any draw when no draw can succeed, naming the constraint.
+
+    Two cases are provable: the region misses the flight box on an axis (a target above the scene),
+    and, for a uniform region, every point of it lies within the clearance of obstacles. The
+    second uses that a distance to obstacles changes by at most the distance moved: the region is
+    cut into a grid, and a cell whose centre is ``d`` from obstacles holds no point farther than
+    ``|d| +`` its half-diagonal.
+    """
+    head = f"found only 0 of {n} positions with clearance={clearance} m in {where}: "
+    axes = "xyz"
+    if box is not None:
+        if distribution == "uniform":
+            low, high = np.maximum(a, box[0]), np.minimum(b, box[1])
+            for i in np.flatnonzero(low > high):
+                raise SceneError(head + f"the region ({axes[i]} in [{a[i]:g}, {b[i]:g}]) lies outside the flight box "
+                                 f"({axes[i]} in [{box[0][i]:g}, {box[1][i]:g}], the bounds shrunk by the clearance) "
+                                 f"on axis {axes[i]}; move the region into the scene's bounds")
+            a, b = low, high
+        else:
+            for i in np.flatnonzero((b == 0) & ((a < box[0]) | (a > box[1]))):
+                raise SceneError(head + f"the mean {axes[i]}={a[i]:g} with std 0 lies outside the flight box "
+                                 f"({axes[i]} in [{box[0][i]:g}, {box[1][i]:g}], the bounds shrunk by the clearance) "
+                                 f"on axis {axes[i]}; move the mean into the scene's bounds")
+    if distribution != "uniform" or clearance <= 0:
+        return
+    cells = np.where(b > a, GRID_CELLS, 1)
+    size = (b - a) / cells
+    grids = np.meshgrid(*[a[i] + size[i] * (np.arange(cells[i]) + 0.5) for i in range(3)], indexing="ij")
+    centres = np.stack([g.ravel() for g in grids], axis=1)
+    reach = np.abs(np.asarray(distance_fn(centres), dtype=np.float64).reshape(-1)) + 0.5 * float(np.linalg.norm(size))
+    if np.all(reach < clearance):
+        raise SceneError(head + f"every point of the region lies within the clearance of obstacles (none can be "
+                         f"farther than {float(reach.max()):.3g} m from one); move the region or lower the clearance")
 
 
 def _vector(value, name: str) -> np.ndarray:
