@@ -519,8 +519,8 @@ class BatchEglRenderer(Renderer):
             drone_rows.append(self._drone_instances(cam, n, poses, origins, rots) if drones else None)
         # Columns of tiles (camera, first agent, count), left to right; a new pass when the atlas is full.
         passes, current, x = [], [], 0
-        for c, cam in enumerate(self.cameras):
-            per_column = min(n, self._max_side // cam.height)
+        for c, cam in enumerate(self.cameras):    # about square: float32 interpolation is finer near the origin
+            per_column = max(1, min(n, self._max_side // cam.height, int(np.ceil(np.sqrt(n * cam.width / cam.height)))))
             for a in range(0, n, per_column):
                 if x + cam.width > self._max_side and current:
                     passes.append(current)
