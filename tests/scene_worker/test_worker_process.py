@@ -4,6 +4,7 @@ worker with a live worker's id refuses to start."""
 from __future__ import annotations
 
 import os
+import re
 import time
 
 import numpy as np
@@ -73,3 +74,26 @@ def test_a_restarted_worker_may_reuse_the_id_of_a_stopped_one(worker_factory, sc
             assert ok and health["pid"] == second.pid
     finally:
         stop_process(second)
+
+
+def test_a_worker_at_its_memory_bound_refuses_loads_with_overloaded_and_keeps_serving(worker_factory):
+    light = LoadScene("light", "gen:empty", (CameraSpec(),)).to_message()
+    full = worker_factory(RUN, worker_id="mem-full", extra_args=["--max-memory-mb", "1"])
+    with client_session(full.endpoint) as session:
+        ok, err = call(session, full.rpc_key, light)
+        assert not ok and err["code"] == "overloaded", err
+        assert re.search(r"uses \d+ MB before loading, at or over its bound of 1 MB \(--max-memory-mb\)", err["message"])
+        ok, health = call(session, full.rpc_key, Health().to_message())
+        assert ok and health["scenes"] == [] and health["limits"]["max_memory_bytes"] == 1024 * 1024
+        base_mb = health["memory_bytes"] // (1024 * 1024)
+    # Room for a light scene, not for a heavy one (about 65 MB): the heavy one is dropped once built.
+    roomy = worker_factory(RUN, worker_id="mem-roomy", extra_args=["--max-memory-mb", str(base_mb + 25)])
+    with client_session(roomy.endpoint) as session:
+        assert call(session, roomy.rpc_key, light)[0]
+        ok, err = call(session, roomy.rpc_key, LoadScene("heavy", HEAVY, (CameraSpec(),)).to_message(), timeout=120)
+        assert not ok and err["code"] == "overloaded", err
+        assert "with scene 'gen:garage-stones" in err["message"] and "built" in err["message"]
+        ok, health = call(session, roomy.rpc_key, Health().to_message())
+        assert ok and health["scenes"] == ["light"] and health["loading"] == []
+        poses = np.array([[2.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]], np.float32)
+        assert call(session, roomy.rpc_key, StepRequest((ScenePoses("light", poses),)).to_message())[0]

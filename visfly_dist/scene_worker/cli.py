@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="length of a scene key (default %(default)s, at most 256)")
     limits.add_argument("--max-pixels", type=int, default=WorkerLimits.max_pixels, metavar="N",
                         help="agents x cameras x pixels one step may render (default %(default)s)")
+    limits.add_argument("--max-memory-mb", type=int, default=None, metavar="MB",
+                        help="resident memory of this worker beyond which scene loads are refused (overloaded); "
+                             "default: half the host's physical memory")
     add_zenoh_config_argument(parser)
     parser.set_defaults(func=run)
 
@@ -101,7 +104,9 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise ConfigError(f"--scene-root {missing} are not existing directories")
     config = session_config(args)
-    limits = WorkerLimits(max_scenes=args.max_scenes, max_key_chars=args.max_key_chars, max_pixels=args.max_pixels)
+    memory = {} if args.max_memory_mb is None else {"max_memory_bytes": args.max_memory_mb * 1024 * 1024}
+    limits = WorkerLimits(max_scenes=args.max_scenes, max_key_chars=args.max_key_chars, max_pixels=args.max_pixels,
+                          **memory)
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads {args.threads} must be >= 1")
     if args.parent_pid is not None and args.parent_pid <= 0:

@@ -45,7 +45,7 @@ from visfly_dist.protocol.messages import (
 from visfly_dist.protocol.session import SessionConfig, open_session
 from visfly_dist.scene_worker.image_segments import SegmentMappings
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, render_scenes_into
-from visfly_dist.scene_worker.limits import WorkerLimits
+from visfly_dist.scene_worker.limits import MIB, WorkerLimits, resident_bytes
 from visfly_dist.scene_worker.queries import query_scenes
 from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
 from visfly_dist.scene_worker.render_raycast import default_tracer
@@ -360,6 +360,7 @@ class SceneWorker:
         if key not in self._scenes and len(self._scenes) >= self.limits.max_scenes:
             raise SceneError(f"this worker holds {len(self._scenes)} scenes, its bound (--max-scenes); "
                              "unload one or load on another worker", code=ErrorCode.OVERLOADED)
+        self._check_memory("before loading")
         job = _LoadJob(request, respond, start)
         self._scenes.begin_load(key, job)
         loader = self._background_loader if self._stepping else self._loader
@@ -377,6 +378,7 @@ class SceneWorker:
         prepared: PreparedScene | None = None
         try:
             prepared = job.future.result()
+            self._check_memory(f"with scene {request.source!r} built")
             loaded = assemble_scene(prepared, self.backend)
             prepared = None
             loaded.cameras = self._shared_cameras(loaded.cameras)
@@ -394,6 +396,13 @@ class SceneWorker:
             return
         self._timer.add("load_scene", time.perf_counter() - job.start)
         job.respond(True, body)
+
+    def _check_memory(self, when: str) -> None:
+        """SceneError ``overloaded`` when this process's resident memory is at its bound."""
+        used, bound = resident_bytes(), self.limits.max_memory_bytes
+        if used is not None and used >= bound:
+            raise SceneError(f"this worker uses {used / MIB:.0f} MB {when}, at or over its bound of {bound / MIB:.0f} MB "
+                             f"(--max-memory-mb); unload scenes or load on another worker", code=ErrorCode.OVERLOADED)
 
     def _shared_cameras(self, cameras: tuple[CameraSpec, ...]) -> tuple[CameraSpec, ...]:
         """The equal cameras tuple a loaded scene already holds, else ``cameras``: scenes with the
@@ -489,5 +498,5 @@ class SceneWorker:
         segments (name -> bytes) and cumulative stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
                 "backend": self.backend, "tracer": self.tracer, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
-                "limits": self.limits.to_dict(), "uptime_s": time.monotonic() - self._started,
+                "limits": self.limits.to_dict(), "memory_bytes": resident_bytes() or 0, "uptime_s": time.monotonic() - self._started,
                 "image_segments": self._segments.names(), "timings": self._timer.summary()}
