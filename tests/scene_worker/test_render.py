@@ -181,13 +181,26 @@ def test_bad_input_is_refused_with_the_reason():
         make_renderer("raycast", scene, [CameraSpec("x"), CameraSpec("x")])
 
 
-def test_auto_backend_picks_raycast_for_depth_and_egl_for_rgb():
+def test_auto_backend_picks_raycast_for_depth_and_egl_for_rgb_on_a_gpu(monkeypatch):
+    from types import SimpleNamespace
+
+    from visfly_dist.scene_worker import render_base
+
     depth_only = [CameraSpec("d", "depth"), CameraSpec("s", "segmentation")]
     assert resolve_backend("auto", depth_only) == "raycast"
-    name, reason = choose_backend("auto", [*depth_only, CameraSpec("c", "rgb")])
-    assert (name, reason) == ("egl", "an RGB camera asks for full materials and textures")
     assert resolve_backend("egl", depth_only) == "egl"
-    assert resolve_backend("auto", [CameraSpec("d", "depth", 320, 320)]) == "egl"
+    gpu = SimpleNamespace(renderer="NVIDIA H200/PCIe/SSE2", is_gpu=True)
+    cpu = SimpleNamespace(renderer="llvmpipe (LLVM 15.0.6, 256 bits)", is_gpu=False)
+    for device, want in ((gpu, "egl"), (cpu, "raycast"), (None, "raycast")):
+        monkeypatch.setattr(render_base, "egl_device", lambda d=device: d)
+        name, reason = choose_backend("auto", [*depth_only, CameraSpec("c", "rgb")])
+        assert name == want, reason
+        assert resolve_backend("auto", [CameraSpec("d", "depth", 320, 320)]) == want
+        assert resolve_backend("auto", depth_only) == "raycast"
+    monkeypatch.setattr(render_base, "egl_device", lambda: gpu)
+    assert choose_backend("auto", [CameraSpec("c", "rgb")]) == ("egl", "an RGB camera: rasterised on the GPU (NVIDIA H200/PCIe/SSE2)")
+    monkeypatch.setattr(render_base, "egl_device", lambda: cpu)
+    assert "GPU EGL unavailable (the EGL device is 'llvmpipe" in choose_backend("auto", [CameraSpec("c", "rgb")])[1]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

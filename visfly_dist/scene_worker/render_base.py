@@ -199,8 +199,8 @@ def render_scenes_into(items: Sequence[tuple], out: dict[str, np.ndarray], start
 
     ``out``: camera name -> ``(rows, C, H, W)`` C-contiguous array (e.g. a view of a shared-memory
     segment). Item ``i``'s images go to rows ``starts[i]`` onwards (default: the items one after
-    another from row 0). The native tracer writes depth and segmentation straight into it; other
-    images are copied in once.
+    another from row 0). The native tracer writes depth and segmentation straight into it, and so
+    does the egl renderer with every image (``render_into``); other images are copied in once.
     """
     counts = [len(item[1]) for item in items]
     if starts is None:
@@ -226,6 +226,8 @@ def _render_all(items: Sequence[tuple], outs: Sequence[dict[str, np.ndarray] | N
             plans.append((k, r, r._plan(poses, show, mounts.get(k), outs[k])))
         elif native:
             later.append(k)
+        elif outs[k] is not None and hasattr(r, "render_into"):   # egl: read back straight into out
+            results[k] = r.render_into(poses, show, time, outs[k])
         else:
             results[k] = r.render(poses, show, time)
     if plans:
@@ -271,12 +273,14 @@ def available_backends() -> tuple[str, ...]:
 def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, str]:
     """Resolve a backend request, with the reason.
 
-    ``auto`` takes the fastest backend able to give what the cameras ask for: ``egl`` when a camera
-    is RGB (full materials and textures) or larger than the raycast limit (rasterising costs less
-    per pixel than tracing there), else ``raycast`` (exact depth and segmentation, and the cheaper
-    at small sizes). The limit depends on the tracer. Measured on garage-stones, 100 cameras, CPU
-    time per depth frame (every thread of the process), one run of ``visfly-dist bench render`` on
-    a loaded 2-core machine:
+    ``auto`` takes the fastest backend able to give what the cameras ask for. ``egl`` only when its
+    EGL device is a GPU (``GL_RENDERER`` not llvmpipe/softpipe, see
+    :func:`visfly_dist.scene_worker.render_egl.gl_device`) and a camera is RGB or larger than the
+    raycast limit (rasterising costs less per pixel than tracing there); else ``raycast`` (exact
+    depth and segmentation, textured RGB too, and the cheaper at small sizes and on a CPU: Mesa's
+    llvmpipe rasterises slower than the tracers trace). The limit depends on the tracer. Measured on
+    garage-stones, 100 cameras, CPU time per depth frame (every thread of the process), one run of
+    ``visfly-dist bench render`` on a loaded 2-core machine:
 
     ======  ==============  =========  ===============
     size    native packets  embreex    egl (llvmpipe)
@@ -286,8 +290,13 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     256     2.4 ms          10.6 ms    3.0 ms
     ======  ==============  =========  ===============
 
-    So: native up to ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256, where egl comes close), embreex up to
-    ``RAYCAST_MAX_PIXELS`` (128x128, about even with egl there).
+    (egl there is the per-camera renderer before issue 23; the batch renderer is about 2x cheaper
+    on llvmpipe, still above the native tracer: BENCHMARKS.md.) So on a GPU: native up to
+    ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256), embreex up to ``RAYCAST_MAX_PIXELS`` (128x128); GPU
+    rates are not measured yet, so these CPU-derived limits are kept there.
+
+    The EGL device is probed (a context made, once per process) only when ``auto`` would take
+    ``egl`` on a GPU; a device that fails counts as unavailable.
 
     Returns:
         ``(backend name, reason)``.
@@ -305,18 +314,36 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
         return requested, "requested"
     if not available:
         raise ConfigError("no render backend is available; install embreex (raycast) or PyOpenGL + libEGL (egl)")
-    if "egl" in available:
-        if any(c.kind == "rgb" for c in cameras):
-            return "egl", "an RGB camera asks for full materials and textures"
-        limit, tracer = ((NATIVE_RAYCAST_MAX_PIXELS, "native") if render_native.available()
-                         else (RAYCAST_MAX_PIXELS, "embreex"))
-        if any(c.width * c.height > limit for c in cameras):
-            return "egl", f"a camera has more than {limit} pixels: rasterising is cheaper there than {tracer} tracing"
     if "raycast" not in available:
         return "egl", "raycast (native tracer or embreex) unavailable"
     if "egl" not in available:
-        return "raycast", "EGL unavailable (RGB, if asked for, from face colours only)"
-    return "raycast", "small depth/segmentation cameras: raycast is exact and fastest"
+        return "raycast", "EGL unavailable (RGB, if asked for, from the tracer's shading)"
+    limit, tracer = ((NATIVE_RAYCAST_MAX_PIXELS, "native") if render_native.available()
+                     else (RAYCAST_MAX_PIXELS, "embreex"))
+    if any(c.kind == "rgb" for c in cameras):
+        why = "an RGB camera: rasterised on the GPU"
+    elif any(c.width * c.height > limit for c in cameras):
+        why = f"a camera has more than {limit} pixels: rasterising on the GPU is cheaper there than {tracer} tracing"
+    else:
+        return "raycast", "small depth/segmentation cameras: raycast is exact and fastest"
+    device = egl_device()
+    if device is None:
+        return "raycast", "GPU EGL unavailable (no usable EGL device)"
+    if not device.is_gpu:
+        return "raycast", f"GPU EGL unavailable (the EGL device is {device.renderer!r}, a CPU rasteriser, slower than tracing)"
+    return "egl", f"{why} ({device.renderer})"
+
+
+def egl_device():
+    """The EGL device of this process (:func:`visfly_dist.scene_worker.render_egl.gl_device`), or None
+    when there is none usable."""
+    from visfly_dist.scene_worker.render_egl import gl_device
+
+    try:
+        return gl_device()
+    except ConfigError as exc:
+        log.info("no EGL device: %s", exc)
+        return None
 
 
 def resolve_backend(requested: str, cameras: Sequence[CameraSpec]) -> str:

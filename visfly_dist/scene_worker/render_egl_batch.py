@@ -485,6 +485,20 @@ class BatchEglRenderer(Renderer):
 
     # -- rendering -----------------------------------------------------------------------------
 
+    def render_into(self, poses: np.ndarray, show_drones: bool, time: float, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """:meth:`render` with the images read back straight into ``out[camera.name]`` ``(n, C, H, W)``
+        (e.g. rows of a shared-memory segment); returns ``out``."""
+        poses = self._checked_poses(poses, show_drones)
+        for cam in self.cameras:
+            image = out[cam.name]
+            if image.shape != (len(poses), *cam.shape) or image.dtype != np.dtype(cam.dtype):
+                raise ConfigError(f"out[{cam.name!r}] is {image.dtype} {image.shape}; camera {cam.name!r} of "
+                                  f"{len(poses)} drones needs {np.dtype(cam.dtype)} {(len(poses), *cam.shape)}")
+        if len(poses):
+            self.place(time)
+            self._render_into(poses, bool(show_drones), out)
+        return out
+
     def _render(self, poses: np.ndarray, show_drones: bool) -> dict[str, np.ndarray]:
         n = len(poses)
         out = {c.name: np.empty((n, *c.shape), c.dtype) for c in self.cameras}
