@@ -1,0 +1,149 @@
+"""The tensor PPO's parts against SB3's (normalisation, GAE), and a real run: episodes, checkpoints, eval."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.running_mean_std import RunningMeanStd
+
+from visfly_dist.training.checkpoints import load_normalization, norm_path
+from visfly_dist.training.config import TrainConfig
+from visfly_dist.training.evaluation import build_eval_env, evaluate, load_policy
+from visfly_dist.training.ppo import train
+from visfly_dist.training.tensor_ppo import CLIP_OBS, EPSILON, Normalizer, Rollout, RunningMoments
+
+CPU = torch.device("cpu")
+
+
+def test_running_moments_match_sb3s_running_mean_std() -> None:
+    rng = np.random.default_rng(0)
+    ours, theirs = RunningMoments((3,), CPU), RunningMeanStd(shape=(3,))
+    for n in (1, 7, 64, 2):
+        batch = rng.normal(2.0, 3.0, size=(n, 3))
+        ours.update(torch.as_tensor(batch))
+        theirs.update(batch)
+    np.testing.assert_allclose(ours.mean.numpy(), theirs.mean, rtol=1e-12)
+    np.testing.assert_allclose(ours.var.numpy(), theirs.var, rtol=1e-12)
+    assert ours.count == pytest.approx(theirs.count)
+
+
+def test_normalizer_gives_vecnormalizes_observations_and_rewards() -> None:
+    """The same formulas as SB3's VecNormalize (obs: update then scale and clip; rewards: scaled by
+    the spread of discounted returns that restart at episode ends), images untouched."""
+    space = spaces.Dict({"state": spaces.Box(-np.inf, np.inf, (2,), np.float32),
+                         "depth": spaces.Box(0, 20, (1, 4, 4), np.float32)})
+    norm = Normalizer(space, num_envs=3, gamma=0.9, device=CPU)
+    obs_rms, ret_rms, returns = RunningMeanStd(shape=(2,)), RunningMeanStd(shape=()), np.zeros(3)
+    rng = np.random.default_rng(1)
+    for step in range(20):
+        state = rng.normal(5.0, 2.0, size=(3, 2)).astype(np.float32)
+        depth = rng.uniform(0, 20, size=(3, 1, 4, 4)).astype(np.float32)
+        reward = rng.normal(size=3).astype(np.float32)
+        done = rng.random(3) < 0.2
+        out = norm.observe({"state": torch.as_tensor(state), "depth": torch.as_tensor(depth)})
+        obs_rms.update(state)
+        expected = np.clip((state - obs_rms.mean) / np.sqrt(obs_rms.var + EPSILON), -CLIP_OBS, CLIP_OBS)
+        np.testing.assert_allclose(out["state"].numpy(), expected, rtol=1e-5, atol=1e-6)
+        assert np.array_equal(out["depth"].numpy(), depth)
+        scaled = norm.reward(torch.as_tensor(reward), torch.as_tensor(done))
+        returns = returns * 0.9 + reward
+        ret_rms.update(returns)
+        np.testing.assert_allclose(scaled.numpy(), np.clip(reward / np.sqrt(ret_rms.var + EPSILON), -10, 10), rtol=1e-5)
+        returns[done] = 0
+
+
+def test_saved_statistics_load_as_a_frozen_vecnormalize(tmp_path: Path) -> None:
+    from stable_baselines3.common.vec_env import DummyVecEnv
+    import gymnasium as gym
+
+    space = spaces.Dict({"state": spaces.Box(-np.inf, np.inf, (2,), np.float32)})
+    norm = Normalizer(space, num_envs=2, gamma=0.99, device=CPU)
+    norm.observe({"state": torch.tensor([[1.0, 2.0], [3.0, 6.0]])})
+    norm.reward(torch.tensor([1.0, -1.0]), torch.tensor([False, False]))
+    norm.save(tmp_path / "x.norm.npz")
+
+    class Probe(gym.Env):
+        observation_space, action_space = space, spaces.Box(-1, 1, (4,), np.float32)
+
+        def reset(self, seed=None, options=None):
+            return {"state": np.zeros(2, np.float32)}, {}
+
+        def step(self, action):
+            return {"state": np.zeros(2, np.float32)}, 0.0, False, False, {}
+
+    venv = load_normalization(DummyVecEnv([Probe]), tmp_path / "x.norm.npz")
+    np.testing.assert_allclose(venv.obs_rms["state"].mean, norm.obs_moments["state"].mean.numpy())
+    np.testing.assert_allclose(venv.obs_rms["state"].var, norm.obs_moments["state"].var.numpy())
+    np.testing.assert_allclose(venv.ret_rms.var, norm.ret_moments.var.numpy())
+    assert venv.training is False and venv.norm_reward
+
+
+def test_gae_matches_sb3s_rollout_buffer() -> None:
+    rng = np.random.default_rng(2)
+    steps, envs, gamma, lam = 9, 4, 0.97, 0.9
+    rewards = rng.normal(size=(steps, envs)).astype(np.float32)
+    values = rng.normal(size=(steps, envs)).astype(np.float32)
+    dones = rng.random((steps, envs)) < 0.25
+    last_values = rng.normal(size=envs).astype(np.float32)
+
+    space = spaces.Dict({"state": spaces.Box(-1, 1, (1,), np.float32)})
+    ours = Rollout(space, steps, envs, CPU)
+    ours.rewards[:], ours.values[:], ours.dones[:] = torch.as_tensor(rewards), torch.as_tensor(values), torch.as_tensor(dones)
+    ours.compute_gae(torch.as_tensor(last_values), gamma, lam)
+
+    sb3 = RolloutBuffer(steps, spaces.Box(-1, 1, (1,), np.float32), spaces.Box(-1, 1, (4,), np.float32),
+                        gamma=gamma, gae_lambda=lam, n_envs=envs)
+    sb3.rewards[:], sb3.values[:] = rewards, values
+    sb3.episode_starts[0] = 0.0
+    sb3.episode_starts[1:] = dones[:-1]  # an episode starts after a done
+    sb3.compute_returns_and_advantage(torch.as_tensor(last_values), dones[-1])
+    np.testing.assert_allclose(ours.advantages.numpy(), sb3.advantages, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(ours.returns.numpy(), sb3.returns, rtol=1e-5, atol=1e-6)
+
+
+def test_a_tensor_ppo_run_counts_episodes_and_writes_checkpoints_eval_loads(tmp_path: Path) -> None:
+    """Gap crossing (teams of 3, two overlapped groups of whole teams): episodes reach the curve,
+    checkpoints and the final model are SB3 files with statistics, and eval runs them."""
+    cfg = TrainConfig(task="gap_crossing", algo="ppo", num_envs=6, workers=1, timesteps=384, n_steps=32,
+                      batch_size=64, n_epochs=1, overlap=True, checkpoint_every=192, progress=False,
+                      out=str(tmp_path / "run"), overrides={"max_episode_steps": 12})
+    result = train(cfg)
+    assert result.config.algo == "ppo" and result.config.overlap and result.timesteps >= 384
+    assert result.summary["rollout_s"] > 0 and result.summary["update_s"] > 0
+    assert not np.isnan(result.summary["success_rate"])  # 12-step episodes ended and were counted
+    checkpoints = sorted((tmp_path / "run" / "checkpoints").glob("step_*.zip"))
+    assert [p.name for p in checkpoints] == ["step_192.zip", "step_384.zip"]
+    assert all(norm_path(p).is_file() for p in [*checkpoints, result.final_model])
+    curve = (tmp_path / "run" / "success_curve.csv").read_text().splitlines()
+    assert curve[0].startswith("timesteps") and len(curve) >= 2
+
+    env = build_eval_env("gap_crossing", 3, 5, result.config, {"max_episode_steps": 12}, {})
+    try:
+        model, env = load_policy(result.final_model, env)
+        stats = evaluate(model, env, episodes=3)
+    finally:
+        env.close()
+    assert stats.episodes == 3
+
+
+@pytest.mark.slow
+def test_tensor_ppo_beats_a_random_policy_on_hover(tmp_path: Path) -> None:
+    from tests.training.test_learning import UniformPolicy, hover_config
+
+    torch.manual_seed(0)
+    result = train(hover_config(tmp_path / "run", timesteps=20_000, algo="ppo"))
+    assert result.config.algo == "ppo"
+    env = build_eval_env("hover", 16, 7, hover_config(tmp_path), {}, {})
+    try:
+        random_stats = evaluate(UniformPolicy(7), env, episodes=32)
+        model, env = load_policy(result.final_model, env)
+        env.seed(7)
+        trained_stats = evaluate(model, env, episodes=32, deterministic=True)
+    finally:
+        env.close()
+    assert trained_stats.mean_return > random_stats.mean_return + 15.0, (random_stats, trained_stats)
