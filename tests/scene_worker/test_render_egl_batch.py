@@ -220,3 +220,25 @@ def test_the_device_is_named():
     device = render_egl.gl_device()
     assert device.renderer and device.version
     assert device.is_gpu == ("llvmpipe" not in device.renderer.lower())
+
+
+@pytest.mark.worker
+def test_an_egl_worker_names_its_gl_device_in_the_ready_line_and_health(scene_root):
+    from tests.helpers import REPO, _read_line, call, client_session, free_port, stop_process, worker_argv
+    from visfly_dist.protocol import keys
+    from visfly_dist.protocol.messages import Health
+
+    device = render_egl.gl_device().renderer
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(worker_argv("egl-device", endpoint, scene_root, backend="egl", worker_id="we"),
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, cwd=REPO)
+    try:
+        line = _read_line(proc, 60.0)
+        assert "worker we ready on run egl-device: backend egl, tracer " in line, line
+        assert f", GL device {device!r}, listening on" in line, line
+        with client_session(endpoint) as session:
+            ok, reply = call(session, keys.worker_rpc("egl-device", "we"), Health().to_message())
+        assert ok and reply["backend"] == "egl" and reply["gl_device"] == device
+    finally:
+        stop_process(proc)

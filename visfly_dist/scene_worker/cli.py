@@ -2,9 +2,11 @@
 
 Prints one line to stdout once it serves (launchers and tests wait for it)::
 
-    worker W ready on run R: backend B, tracer T, listening on [...] / connected to [...]
+    worker W ready on run R: backend B, tracer T[, GL device 'D'], listening on [...] / connected to [...]
 
-``T`` is the raycast backend's tracer: ``native`` (packets) or ``embreex`` (the fallback).
+``T`` is the raycast backend's tracer: ``native`` (packets) or ``embreex`` (the fallback); ``D`` the
+``GL_RENDERER`` of the egl backend's EGL device (``egl`` and ``auto`` workers that have one; the egl
+renderer is the batch renderer of :mod:`visfly_dist.scene_worker.render_egl_batch`).
 
 With ``--connect`` alone the worker is a Zenoh client of those endpoints (a router or a listening
 aggregator); with ``--listen`` it is a peer listening there (others connect to it).
@@ -37,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-root", action="append", default=[], metavar="DIR",
                         help="folder scene files may be loaded from (repeatable; default: current dir)")
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), default="auto",
-                        help="renderer: egl (pyrender), raycast (Embree), auto (per scene's cameras)")
+                        help="renderer: egl (OpenGL batch renderer over EGL), raycast (ray tracer), auto (per scene's cameras)")
     parser.add_argument("--threads", type=int, default=None,
                         help="raycast tracing threads (default: the CPUs this process may use, at most 8)")
     parser.add_argument("--worker-id", default=None, help="id in the run (default: <host>-<pid>)")
@@ -130,8 +132,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         worker.start()
         where = f"listening on {list(config.listen)}" if config.listen else f"connected to {list(config.connect)}"
+        gl = f"GL device {worker.gl_device!r}, " if worker.gl_device else ""
         print(f"worker {worker.worker_id} ready on run {args.run_id}: backend {args.backend}, "
-              f"tracer {worker.tracer}, {where}", flush=True)
+              f"tracer {worker.tracer}, {gl}{where}", flush=True)
         worker.serve(should_stop=should_stop)
     finally:
         worker.close()

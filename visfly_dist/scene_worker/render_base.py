@@ -334,6 +334,24 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     return "egl", f"{why} ({device.renderer})"
 
 
+def gl_device_name(backend: str) -> str | None:
+    """The ``GL_RENDERER`` of the EGL device a worker of ``backend`` draws with (``auto``: may draw
+    with), for its ready line and health; None for ``raycast`` or without a usable device (``auto``).
+
+    Raises:
+        ConfigError: ``egl`` was asked for and there is no usable EGL device (the message says to
+            use ``--backend raycast``).
+    """
+    if backend == "raycast" or "egl" not in available_backends():
+        return None
+    if backend == "egl":
+        from visfly_dist.scene_worker.render_egl import gl_device
+
+        return gl_device().renderer
+    device = egl_device()
+    return None if device is None else device.renderer
+
+
 def egl_device():
     """The EGL device of this process (:func:`visfly_dist.scene_worker.render_egl.gl_device`), or None
     when there is none usable."""

@@ -44,7 +44,7 @@ from visfly_dist.protocol.messages import (
 )
 from visfly_dist.protocol.session import SessionConfig, open_session
 from visfly_dist.scene_worker.image_segments import SegmentMappings
-from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, render_scenes_into
+from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, gl_device_name, render_scenes_into
 from visfly_dist.scene_worker.limits import MIB, WorkerLimits, resident_bytes
 from visfly_dist.scene_worker.queries import query_scenes
 from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
@@ -111,6 +111,7 @@ class SceneWorker:
 
     Attributes:
         tracer: the raycast backend's tracer, ``native`` or ``embreex`` (the fallback).
+        gl_device: ``GL_RENDERER`` of the egl backend's EGL device (None: raycast only).
     """
 
     def __init__(
@@ -134,6 +135,7 @@ class SceneWorker:
         self.threads = threads
         self.tracer, reason = default_tracer()
         log.info("raycast tracer %s (%s)", self.tracer, reason)
+        self.gl_device = gl_device_name(backend)   # GL_RENDERER of the egl backend's device, or None
         self.scene_roots = roots
         self.session_config = session
         self.limits = limits or WorkerLimits()
@@ -445,10 +447,15 @@ class SceneWorker:
             with self._timer.time("render", timings):
                 render_scenes_into([(scene.renderer, poses[start:end], scene.multi_agent, t)
                                     for scene, (start, end), t in zip(loaded, bounds, times)], images, starts)
-            if target is not None:
-                self._segments.publish(target)
+            why = target is not None and self._segments.publish(target, images, starts, counts)
+            if target is not None and not why:
                 reply["images_in_segment"] = True
             else:
+                if why:  # the segment changed under us: the images go inline, in request order
+                    log.warning("replying inline: %s", why)
+                    reply["segment_refused"] = why
+                    images = {name: np.concatenate([image[s:s + c] for s, c in zip(starts.tolist(), counts.tolist())])
+                              for name, image in images.items()}
                 reply["images"] = images
         if request.query:
             with self._timer.time("query", timings):
@@ -497,6 +504,6 @@ class SceneWorker:
         """The ``health`` reply: identity, loaded and loading scenes, bounds, uptime, mapped image
         segments (name -> bytes) and cumulative stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
-                "backend": self.backend, "tracer": self.tracer, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
+                "backend": self.backend, "tracer": self.tracer, "gl_device": self.gl_device, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
                 "limits": self.limits.to_dict(), "memory_bytes": resident_bytes() or 0, "uptime_s": time.monotonic() - self._started,
                 "image_segments": self._segments.names(), "timings": self._timer.summary()}
