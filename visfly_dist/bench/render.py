@@ -7,14 +7,16 @@ loopback (Zenoh, shared memory) answers ``StepRequest``s (render only), so the r
 and transport. Obstacle queries (:class:`ObstacleQueries`, same poses) are timed in-process.
 
 The raycast backend is measured with each tracer (``native`` packets and the ``embreex`` fallback) on
-1 and 2 threads. ``cpu_frames_per_s`` is frames per CPU-second of the whole process (every thread):
+1 and 2 threads. ``egl`` is the batch renderer (every camera of a call in one pass); the bench-only
+backend ``egl-legacy`` is the per-camera renderer it replaced (issue 23), measured in-process only,
+right after ``egl`` for each resolution and kind so that their ratio comes from the same minute. ``cpu_frames_per_s`` is frames per CPU-second of the whole process (every thread):
 the per-core figure, steadier than wall time on a shared machine.
 
 JSON rows: ``backend, tracer (raycast only), threads (raycast only), res, kind, agents, frames_per_s,
 cpu_frames_per_s (in-process rows), where (in_process|worker), seconds``; one queries row
 ``backend="native"|"fcl", kind="queries", agents, queries_per_s, query_share_of_raycast_step``: the queries'
 share of a step that renders 64x64 depth with raycast and queries (``q / (render + q)``); and the
-goal rows of issue 8 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``; and the
+goal rows of issues 8 and 23 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``; and the
 moving-obstacle rows of :mod:`visfly_dist.bench.moving` (``--moving N``, 20 by default).
 """
 
@@ -76,7 +78,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
     from the same minute of a shared machine.
 
     Args:
-        backends: ``raycast`` and/or ``egl``; default: every available one.
+        backends: ``raycast``, ``egl`` and/or ``egl-legacy`` (bench only); default: every available one.
         res: square resolutions, pixels per side.
         kinds: sensor kinds (``depth``, ``rgb``, ``segmentation``).
         cameras: drones rendered per call, one camera each (the rows' ``agents``).
@@ -110,6 +112,11 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
             configs += [("raycast", tracer, n) for n in threads for tracer in tracers]
         else:
             configs.append((backend, None, None))
+    configs.sort(key=lambda c: c[0] == "egl-legacy")   # egl-legacy right after egl (their ratio is a goal)
+    if "egl" in backends:
+        from visfly_dist.scene_worker.render_egl import gl_device
+
+        log(f"[bench render] egl GL device: {gl_device().renderer}")
     rows: list[dict[str, Any]] = []
     for r in res:
         for kind in kinds:
@@ -138,7 +145,8 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
             log(f"[bench render] skipping the worker rows: {reason}")
         else:
             for backend in backends:
-                rows += _bench_worker(backend, res, kinds, poses, scene, seed, reps, max(threads), log)
+                if backend != LEGACY_EGL:   # bench-only: no worker serves it
+                    rows += _bench_worker(backend, res, kinds, poses, scene, seed, reps, max(threads), log)
     goals = goal_rows(rows)
     for g in goals:
         log(f"[bench render] goal {g['goal']}: {g['value']:.2f} (target >= {g['target']:g}): "
@@ -154,6 +162,9 @@ def available_tracers() -> list[str]:
     return out + (["embreex"] if importlib.util.find_spec("embreex") is not None else [])
 
 
+LEGACY_EGL = "egl-legacy"
+"""Bench-only backend: the per-camera egl renderer the batch renderer replaced (issue 23)."""
+
 GOALS = (
     # (goal, numerator (tracer, threads, res), denominator, measure, target); issue 8's goals
     ("native / embreex per core, 64x64 depth", ("native", 1, 64), ("embreex", 1, 64), "cpu_frames_per_s", 2.5),
@@ -163,9 +174,17 @@ GOALS = (
 )
 
 
+EGL_GOALS = (
+    # (goal, kind, res, target): batch egl frames/s over the per-camera egl's, 100 cameras; issue 23's goals
+    ("batch egl / per-camera egl frames/s, 64x64 depth", "depth", 64, 3.0),
+    ("batch egl / per-camera egl frames/s, 64x64 rgb", "rgb", 64, 3.0),
+)
+
+
 def goal_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """Issue 8's goals as rows ``{"backend": "raycast", "kind": "goal", "goal", "value", "target", "met"}``,
-    from the in-process raycast depth rows of this run (goals whose rows are missing are left out)."""
+    from the in-process raycast depth rows of this run, and issue 23's (``"backend": "egl"``) from its
+    in-process egl and egl-legacy rows (goals whose rows are missing are left out)."""
     found = {(r["tracer"], r["threads"], r["res"]): r for r in rows
              if r.get("backend") == "raycast" and r.get("kind") == "depth" and r.get("where") == "in_process"}
     out = []
@@ -175,6 +194,13 @@ def goal_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
         value = found[num][measure] / (found[den][measure] if den is not None else 1.0)
         out.append({"backend": "raycast", "kind": "goal", "goal": goal, "value": value, "target": target,
                     "met": bool(value >= target)})
+    egl = {(r["backend"], r["kind"], r["res"]): r for r in rows
+           if r.get("backend") in ("egl", LEGACY_EGL) and r.get("where") == "in_process" and "frames_per_s" in r}
+    for goal, kind, res, target in EGL_GOALS:
+        if ("egl", kind, res) in egl and (LEGACY_EGL, kind, res) in egl:
+            value = egl[("egl", kind, res)]["frames_per_s"] / egl[(LEGACY_EGL, kind, res)]["frames_per_s"]
+            out.append({"backend": "egl", "kind": "goal", "goal": goal, "value": value, "target": target,
+                        "met": bool(value >= target)})
     return out
 
 
@@ -184,7 +210,13 @@ def _time_in_process(backend: str, tracer: str | None, threads: int | None, worl
     from visfly_dist.scene_worker.render_base import make_renderer
 
     options = {"tracer": tracer} if tracer else {}
-    with make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS, threads=threads, **options) as renderer:
+    if backend == LEGACY_EGL:
+        from visfly_dist.scene_worker.render_egl_legacy import LegacyEglRenderer
+
+        renderer = LegacyEglRenderer(world, [cam], drone_radius=DRONE_RADIUS)
+    else:
+        renderer = make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS, threads=threads, **options)
+    with renderer:
         renderer.render(poses)
         walls, cpus = [], []
         for _ in range(reps):
@@ -200,7 +232,8 @@ def _check(backends: Sequence[str], res: Sequence[int], kinds: Sequence[str], ca
     from visfly_dist.scene_worker.render_base import BACKENDS
     from visfly_dist.scene_worker.render_raycast import TRACERS
 
-    problems = [f"backend {b!r} must be one of {BACKENDS}" for b in backends if b not in BACKENDS]
+    problems = [f"backend {b!r} must be one of {(*BACKENDS, LEGACY_EGL)}" for b in backends
+                if b not in (*BACKENDS, LEGACY_EGL)]
     problems += [f"kind {k!r} must be one of {SENSOR_KINDS}" for k in kinds if k not in SENSOR_KINDS]
     problems += [f"res {r!r} must be an int in [1, 2048]" for r in res if not 1 <= int(r) <= 2048]
     problems += [f"threads {n!r} must be an int in [1, 64]" for n in threads if not 1 <= int(n) <= 64]
@@ -351,8 +384,9 @@ def _call(session: Any, key: str, message: dict[str, Any]) -> dict[str, Any]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--backend", nargs="+", default=None, choices=("raycast", "egl"),
-                        help="backends to measure (default: every available one)")
+    parser.add_argument("--backend", nargs="+", default=None, choices=("raycast", "egl", LEGACY_EGL),
+                        help="backends to measure (default: every available one); egl-legacy: the per-camera "
+                             "egl renderer the batch renderer replaced, in-process only, for comparison")
     parser.add_argument("--res", type=int, nargs="+", default=[64, 128, 256], help="square resolutions, pixels per side")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="raycast tracing threads to measure")
     parser.add_argument("--tracers", nargs="+", default=None, choices=("native", "embreex"),
