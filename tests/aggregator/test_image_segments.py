@@ -136,6 +136,35 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
     learner.close()
 
 
+def test_a_segment_truncated_under_a_live_worker_costs_one_inline_reply_not_the_worker(served):
+    """Another process of the user truncates the file the worker writes into (a worker that wrote
+    through a mapping died of SIGBUS): the worker replies inline saying why, and keeps serving."""
+    proc, session, _ = served
+    poses = _poses(7, seed=9)
+    ok, inline = call(session, proc.rpc_key, _step(poses))
+    learner = ImageSegments(RUN, CAMS)
+    step, target = _offer(learner, proc.worker_id, len(poses))
+    ok, reply = call(session, proc.rpc_key, _step(poses, target))
+    assert ok and reply["images_in_segment"] is True  # the worker holds the file open now
+    os.truncate(os.path.join("/dev/shm", target.name), HEADER_BYTES)  # the blocks are gone
+    ok, reply = call(session, proc.rpc_key, _step(poses, target))
+    assert ok, reply
+    assert "truncated or grew it" in reply["segment_refused"] and "images_in_segment" not in reply
+    for cam in CAMS:
+        np.testing.assert_array_equal(reply["images"][cam.name], inline["images"][cam.name])
+    # The worker let the file go: named again, it is a file of the wrong size (a typed refusal).
+    ok, err = call(session, proc.rpc_key, _step(poses, target))
+    assert not ok and err["code"] == "bad_request" and f"has {HEADER_BYTES} bytes; the request says" in err["message"]
+    assert proc.poll() is None, proc.stderr_text()[-2000:]
+    ok, health = call(session, proc.rpc_key, Health().to_message())
+    assert ok and target.name not in health["image_segments"]
+    assert learner.release(step, failed=True) == []  # reads the header only: the first page is still there
+    del step
+    learner.close()
+    ok, again = call(session, proc.rpc_key, _step(poses))
+    assert ok and all(np.array_equal(again["images"][c.name], inline["images"][c.name]) for c in CAMS)
+
+
 @pytest.mark.parametrize("change, match", [
     (dict(name="../../tmp/visfly-img-x"), "no path separators"),
     (dict(name="visfly-img-a/b"), "no path separators"),

@@ -1,15 +1,23 @@
-"""The worker's side of image segments: map the learner's ``/dev/shm`` file, prove it is the learner's,
-and give the renderer numpy views to write into (:mod:`visfly_dist.protocol.image_segment`).
+"""The worker's side of image segments: open the learner's ``/dev/shm`` file, prove it is the learner's,
+and write a step's images into it (:mod:`visfly_dist.protocol.image_segment`).
 
-Mappings are cached by name: the learner unlinks a file as soon as this worker has answered a
-request that used it, so later requests find the mapping here, not the file. The cache keeps the
-few most recently used mappings and closes older ones (a learner grows a segment by naming a new
-file).
+The worker never maps a segment: it renders into buffers of its own and ``pwrite``\ s each entry's
+rows into the file. Any process of the user may truncate a ``/dev/shm`` file, and a store into a
+mapping past the file's new end kills the writer with SIGBUS; ``pwrite`` past the end only extends
+the file again. A segment whose size is no longer the request's is refused (the images go inline,
+``segment_refused`` says why), so a truncated segment costs one inline reply, never the worker. The
+price is one copy of the images (into the file's pages), which the renderer made before as well when
+it wrote into the mapping: a store into a page is the same copy as ``pwrite``\ 's, and the buffers
+are reused from step to step.
+
+Files are cached by name (an open descriptor each): the learner unlinks a file as soon as this worker
+has answered a request that used it, so later requests find the descriptor here, not the file. The
+cache keeps the few most recently used and closes older ones (a learner grows a segment by naming a
+new file).
 """
 
 from __future__ import annotations
 
-import mmap
 import os
 import stat
 from collections import OrderedDict
@@ -20,56 +28,100 @@ import numpy as np
 from visfly_dist.errors import ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
-    NONCE_BYTES, SEQ, SHM_DIR, SegmentTarget, block_bytes, block_view,
+    NONCE_BYTES, SEQ, SHM_DIR, SegmentTarget, block_bytes,
 )
 
 MAX_MAPPINGS = 8
 
 
 class SegmentMappings:
-    """Segments this worker has mapped, by name (most recently used last)."""
+    """Segment files this worker has open, by name (most recently used last), and its image buffers."""
 
     def __init__(self, max_mappings: int = MAX_MAPPINGS) -> None:
-        self._maps: OrderedDict[str, mmap.mmap] = OrderedDict()
+        self._files: OrderedDict[str, tuple[int, int]] = OrderedDict()  # name -> (fd, size)
         self._max = max_mappings
+        self._buffers: dict[tuple[str, str, tuple[int, ...]], np.ndarray] = {}
 
     def views(self, target: SegmentTarget, cameras: Sequence[CameraSpec],
               rows: int) -> tuple[dict[str, np.ndarray] | None, str]:
-        """Writable ``(rows, C, H, W)`` views of each camera's block and ``""``; or ``None`` and why the
-        segment cannot be used (no such file here, or another nonce in it: not the learner's host).
+        """Writable ``(rows, C, H, W)`` buffers of each camera and ``""``; or ``None`` and why the
+        segment cannot be used (no such file here, another nonce in it: not the learner's host; or
+        a size that changed). Render into the buffers, then :meth:`publish` writes them.
 
         Marks the segment's images as being written (sequence number 0 at the target's
         ``seq_offset``) until :meth:`publish`.
 
         Raises:
             ProtocolError: blocks that do not fit the cameras or the segment, or a file whose size
-                differs from the request's.
+                differs from the request's when it is first opened.
         """
         target.check_blocks({c.name: block_bytes(c, rows) for c in cameras})
-        mm = self._maps.get(target.name)
-        if mm is not None and len(mm) != target.size:
-            raise ProtocolError(f"image segment {target.name!r} is mapped with {len(mm)} bytes; the request "
+        entry = self._files.get(target.name)
+        if entry is not None and entry[1] != target.size:
+            raise ProtocolError(f"image segment {target.name!r} was opened with {entry[1]} bytes; the request "
                                 f"says {target.size}")
-        if mm is None:
-            mm, why = self._open(target)
-            if mm is None:
+        if entry is None:
+            fd, why = self._open(target)
+            if fd is None:
                 return None, why
-        if mm[:NONCE_BYTES] != target.nonce:
-            _close(self._maps.pop(target.name, mm))
-            return None, f"image segment {target.name!r} holds another nonce (a different host or /dev/shm)"
-        self._maps[target.name] = mm
-        self._maps.move_to_end(target.name)
-        while len(self._maps) > self._max:
-            _close(self._maps.popitem(last=False)[1])
-        SEQ.pack_into(mm, target.seq_offset, 0)
-        return {c.name: block_view(mm, target.blocks[c.name], c, rows) for c in cameras}, ""
+            entry = (fd, target.size)
+        fd = entry[0]
+        try:
+            size = os.fstat(fd).st_size
+            if size != target.size:
+                self._drop(target.name, entry)
+                return None, (f"image segment {target.name!r} has {size} bytes now, not {target.size}: "
+                              "another process truncated or grew it")
+            if os.pread(fd, NONCE_BYTES, 0) != target.nonce:
+                self._drop(target.name, entry)
+                return None, f"image segment {target.name!r} holds another nonce (a different host or /dev/shm)"
+            self._files[target.name] = entry
+            self._files.move_to_end(target.name)
+            while len(self._files) > self._max:
+                os.close(self._files.popitem(last=False)[1][0])
+            os.pwrite(fd, SEQ.pack(0), target.seq_offset)
+        except OSError as exc:
+            self._drop(target.name, entry)
+            return None, f"image segment {target.name!r} cannot be written: {exc.strerror}"
+        return {c.name: self._buffer(target.name, c, rows) for c in cameras}, ""
 
-    def publish(self, target: SegmentTarget) -> None:
-        """Mark ``target``'s images complete: its sequence number goes into the header."""
-        SEQ.pack_into(self._maps[target.name], target.seq_offset, target.seq)
+    def publish(self, target: SegmentTarget, images: dict[str, np.ndarray], starts: np.ndarray,
+                counts: np.ndarray) -> str:
+        """Write each entry's rows of ``images`` into the segment, then its sequence number into the
+        header; ``""``, or why the segment could not take them (the caller replies inline then)."""
+        fd, size = self._files[target.name]
+        try:
+            if os.fstat(fd).st_size != size:
+                self._drop(target.name, (fd, size))
+                return (f"image segment {target.name!r} was truncated or grown by another process while the "
+                        "images were rendered")
+            for name, block in target.blocks.items():
+                image = images[name]
+                row_bytes = image[0].nbytes if len(image) else 0
+                for start, count in zip(starts.tolist(), counts.tolist()):
+                    if count:
+                        _pwrite_all(fd, memoryview(image[start:start + count]).cast("B"), block + start * row_bytes)
+            os.pwrite(fd, SEQ.pack(target.seq), target.seq_offset)
+        except OSError as exc:
+            self._drop(target.name, (fd, size))
+            return f"image segment {target.name!r} cannot be written: {exc.strerror}"
+        return ""
+
+    def _buffer(self, name: str, camera: CameraSpec, rows: int) -> np.ndarray:
+        """A reused ``(rows, C, H, W)`` buffer of ``camera``'s images (grown to the next power of two)."""
+        key = (camera.name, camera.dtype.str, tuple(camera.shape))
+        buf = self._buffers.get(key)
+        if buf is None or len(buf) < rows:
+            buf = self._buffers[key] = np.empty((1 << max(rows - 1, 0).bit_length(), *camera.shape), camera.dtype)
+        return buf[:rows]
+
+    def _drop(self, name: str, entry: tuple[int, int]) -> None:
+        if self._files.get(name) == entry:
+            del self._files[name]
+        os.close(entry[0])
 
     @staticmethod
-    def _open(target: SegmentTarget) -> tuple[mmap.mmap | None, str]:
+    def _open(target: SegmentTarget) -> tuple[int | None, str]:
         path = os.path.join(SHM_DIR, target.name)  # the name holds no separator and no dot (check_name)
         try:
             fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
@@ -81,22 +133,23 @@ class SegmentMappings:
                 raise ProtocolError(f"image segment {path} is not a regular file")
             if st.st_size != target.size:
                 raise ProtocolError(f"image segment {path} has {st.st_size} bytes; the request says {target.size}")
-            return mmap.mmap(fd, target.size), ""
-        finally:
+        except BaseException:
             os.close(fd)
+            raise
+        return fd, ""
 
     def close(self) -> None:
-        """Unmap every segment (idempotent)."""
-        while self._maps:
-            _close(self._maps.popitem()[1])
+        """Close every segment file and free the buffers (idempotent)."""
+        while self._files:
+            os.close(self._files.popitem()[1][0])
+        self._buffers.clear()
 
     def names(self) -> dict[str, int]:
-        """Mapped segment names -> sizes (for the health reply)."""
-        return {name: len(mm) for name, mm in self._maps.items()}
+        """Open segment names -> sizes (for the health reply)."""
+        return {name: size for name, (_, size) in self._files.items()}
 
 
-def _close(mm: mmap.mmap) -> None:
-    try:
-        mm.close()
-    except BufferError:  # a view of it still exists: the mapping goes with the last view
-        pass
+def _pwrite_all(fd: int, data: memoryview, offset: int) -> None:
+    while len(data):
+        done = os.pwrite(fd, data, offset)
+        data, offset = data[done:], offset + done
