@@ -113,7 +113,7 @@ def test_hundred_cameras_in_one_call_match_the_tracer_and_one_by_one():
         assert_same(one, {name: image[k:k + 1] for name, image in batch.items()})
 
 
-def test_atlas_split_in_columns_and_passes_and_the_unculled_path_give_the_same_images(monkeypatch):
+def test_atlas_split_in_columns_and_passes_lanes_and_the_unculled_path_give_the_same_images(monkeypatch):
     scene = generate_scene("garage-stones", seed=0)
     poses = random_poses(scene, 30, np.random.default_rng(5))
     cams = RIG
@@ -124,6 +124,10 @@ def test_atlas_split_in_columns_and_passes_and_the_unculled_path_give_the_same_i
         got = r.render(poses, show_drones=True)
         assert r._max_side == 150
     monkeypatch.undo()
+    for lanes in (1, 3):    # drones split between contexts drawing at once, each seeing every drone
+        with make_renderer("egl", scene, cams, lanes=lanes) as r:
+            assert_same(r.render(poses, show_drones=True), want)
+            assert len(r._lanes) == lanes - 1
     monkeypatch.setenv("VISFLY_EGL_CULL", "0")
     with make_renderer("egl", scene, cams) as r:
         unculled = r.render(poses, show_drones=True)

@@ -44,6 +44,7 @@ class EglContext:
 
     display: object
     context: object
+    config: object
     device_index: int
     device_source: str
     renderer: str = ""
@@ -115,6 +116,24 @@ def gl_device() -> EglContext:
     return _context
 
 
+def extra_context() -> EglContext:
+    """Another context on the process's EGL device (current nowhere): for drawing from a second
+    thread at the same time (each thread keeps its own context current)."""
+    from OpenGL import EGL, arrays
+
+    main = gl_device()
+    attributes = arrays.GLintArray.asArray([
+        EGL.EGL_CONTEXT_MAJOR_VERSION, 3, EGL.EGL_CONTEXT_MINOR_VERSION, 3,
+        EGL.EGL_CONTEXT_OPENGL_PROFILE_MASK, EGL.EGL_CONTEXT_OPENGL_CORE_PROFILE_BIT, EGL.EGL_NONE])
+    with _lock:
+        EGL.eglBindAPI(EGL.EGL_OPENGL_API)
+        context = EGL.eglCreateContext(main.display, main.config, EGL.EGL_NO_CONTEXT, attributes)
+    if not context:
+        raise _fail(f"a second OpenGL context on device {main.device_index} failed (error 0x{EGL.eglGetError():x})")
+    return EglContext(main.display, context, main.config, main.device_index, main.device_source, main.renderer,
+                      main.version)
+
+
 def _fail(what: str) -> ConfigError:
     return ConfigError(f"the egl backend has no usable EGL device: {what}; use --backend raycast "
                        "(or set EGL_DEVICE_ID to another device)")
@@ -156,7 +175,7 @@ def _create() -> EglContext:
     context = EGL.eglCreateContext(display, configs[0], EGL.EGL_NO_CONTEXT, context_attributes)
     if not context:
         raise _fail(f"device {index} gave no OpenGL 3.3 core context (error 0x{EGL.eglGetError():x})")
-    made = EglContext(display, context, index, source)
+    made = EglContext(display, context, configs[0], index, source)
     made.make_current()
     from OpenGL import GL
 

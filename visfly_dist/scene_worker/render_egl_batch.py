@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import ctypes
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # must precede the first OpenGL import
@@ -50,10 +52,11 @@ from visfly_dist.scene_worker.render_egl import gl_context  # noqa: E402
 from visfly_dist.scenes.scene import Scene  # noqa: E402
 
 DRONE_SUBDIVISIONS = 2   # icosphere of 320 faces: within 1.8% of the radius
-CHUNK_FACES = int(os.environ.get("VISFLY_EGL_CHUNK", "256"))        # faces per culling chunk
+CHUNK_FACES = 64          # faces per culling chunk (32-256 measure about the same on llvmpipe)
 BIG_FACE_M = 1.0         # faces with a bounding radius above this (m) are chunked apart (walls, floors)
 MAX_ATLAS = 8192         # pixels per side of the atlas at most (also capped by the GL limits)
 KINDS = ("depth", "segmentation", "rgb")
+MIN_TILES_PER_LANE = 8   # fewer drones per lane than this: fewer lanes
 _TILE_TEXELS = 4         # per tile: 3 rows of the world -> eye matrix, then (place x, place y, 0, 0)
 
 VERTEX_SHADER = """
@@ -346,17 +349,48 @@ class BatchEglRenderer(Renderer):
 
     name = "egl"
 
-    def __init__(self, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1) -> None:
+    def __init__(self, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1,
+                 lanes: int | None = None) -> None:
         super().__init__(scene, cameras, drone_radius)
-        self._gl: dict | None = None
+        if lanes is not None and (isinstance(lanes, bool) or not isinstance(lanes, int) or not 1 <= lanes <= 64):
+            raise ConfigError(f"lanes={lanes!r} must be an int in [1, 64]")
+        self._lanes_asked = lanes
+        self._states: dict[int, dict] = {}          # thread id -> that lane's GL objects (its context current there)
+        self._lanes: list[tuple[object, ThreadPoolExecutor]] = []   # lanes 1..: (context, its one thread)
         self._translations = np.zeros((len(self.moving), 3))
-        self._moved = True
+        self._moved = 0                              # placement version; each lane uploads it once
         self._max_side = MAX_ATLAS
         self._indirect = False
 
+    @property
+    def _gl(self) -> dict | None:
+        """The GL objects of the calling thread's lane."""
+        return self._states.get(threading.get_ident())
+
+    @_gl.setter
+    def _gl(self, state: dict | None) -> None:
+        if state is None:
+            self._states.pop(threading.get_ident(), None)
+        else:
+            self._states[threading.get_ident()] = state
+
+    @property
+    def lanes(self) -> int:
+        """Contexts drawing one call's cameras at once, each on its own thread: 1 on a GPU; on a CPU
+        rasteriser (llvmpipe) the CPUs this process may use, at most 4 (``VISFLY_EGL_LANES`` or the
+        ``lanes`` argument override): llvmpipe shades vertices and sets triangles up on the calling
+        thread, so one context keeps one core busy."""
+        if self._lanes_asked is not None:
+            return self._lanes_asked
+        if os.environ.get("VISFLY_EGL_LANES", "").strip():
+            return max(1, int(os.environ["VISFLY_EGL_LANES"]))
+        from visfly_dist.scene_worker.render_egl import gl_device
+
+        return 1 if gl_device().is_gpu else max(1, min(4, len(os.sched_getaffinity(0))))
+
     def _move(self, translations: np.ndarray) -> None:
         self._translations = np.asarray(translations, np.float64)
-        self._moved = True
+        self._moved += 1
 
     # -- set-up --------------------------------------------------------------------------------
 
@@ -366,7 +400,7 @@ class BatchEglRenderer(Renderer):
         version = GL.glGetIntegerv(GL.GL_MAJOR_VERSION) * 10 + GL.glGetIntegerv(GL.GL_MINOR_VERSION)
         self._indirect = version >= 43 and os.environ.get("VISFLY_EGL_CULL", "1") != "0"
         s: dict = {"programs": {}, "targets": {}, "fbo": GL.glGenFramebuffers(1), "depth": None, "size": (0, 0),
-                   "vaos": [], "buffers": []}
+                   "vaos": [], "buffers": [], "moved": -1}
         self._max_side = int(min(MAX_ATLAS, GL.glGetIntegerv(GL.GL_MAX_RENDERBUFFER_SIZE),
                                  *np.ravel(GL.glGetIntegerv(GL.GL_MAX_VIEWPORT_DIMS))))
         for kind in kinds:
@@ -434,11 +468,24 @@ class BatchEglRenderer(Renderer):
         return vao
 
     def _release(self) -> None:
-        if self._gl is None:
-            return
+        for context, lane in self._lanes:
+            lane.submit(self._release_lane, context).result()
+            lane.shutdown()
+        self._lanes = []
+        leftover = list(self._states.values())     # lane 0's, made on whichever thread rendered first
+        self._states.clear()
+        if leftover:
+            gl_context()
+            for state in leftover:
+                self._gl = state
+                self._release_lane(None)
+
+    def _release_lane(self, context) -> None:
+        """Free the calling thread's lane (and its extra context, if any)."""
         GL = _gl()
-        gl_context()
         s, self._gl = self._gl, None
+        if s is None:
+            return
         for program, _ in s["programs"].values():
             GL.glDeleteProgram(program)
         for name in ("tiles", "movers", "texels", "texture_info", "instances", "tile_ids", "commands"):
@@ -447,6 +494,11 @@ class BatchEglRenderer(Renderer):
         GL.glDeleteBuffers(len(s["buffers"]), s["buffers"])
         self._free_targets(s)
         GL.glDeleteFramebuffers(1, [s["fbo"]])
+        if context is not None:
+            from OpenGL import EGL
+
+            context.release()
+            EGL.eglDestroyContext(context.display, context.context)
 
     def _free_targets(self, s: dict) -> None:
         GL = _gl()
@@ -506,18 +558,39 @@ class BatchEglRenderer(Renderer):
         return out
 
     def _render_into(self, poses: np.ndarray, show_drones: bool, out: dict[str, np.ndarray]) -> None:
-        """Render every camera of ``poses`` into ``out[camera.name]`` ``(n, C, H, W)``."""
+        """Render every camera of ``poses`` into ``out[camera.name]`` ``(n, C, H, W)``: the drones split
+        between the lanes (:attr:`lanes`), each lane on its own thread and context."""
+        lanes = min(self.lanes, max(1, len(poses) // MIN_TILES_PER_LANE))
+        from visfly_dist.scene_worker.render_egl import extra_context
+
+        while len(self._lanes) < lanes - 1:
+            context = extra_context()
+            lane = ThreadPoolExecutor(1, thread_name_prefix="egl-lane")
+            lane.submit(context.make_current).result()
+            self._lanes.append((context, lane))
+        bounds = np.linspace(0, len(poses), lanes + 1).round().astype(int)
+        jobs = [lane.submit(self._render_rows, poses, show_drones, out, int(lo), int(hi))
+                for (_, lane), lo, hi in zip(self._lanes, bounds[1:-1], bounds[2:])]
+        try:
+            gl_context()
+            self._render_rows(poses, show_drones, out, 0, int(bounds[1]))
+        finally:
+            for job in jobs:
+                job.result()
+
+    def _render_rows(self, poses: np.ndarray, show_drones: bool, out: dict[str, np.ndarray], lo: int, hi: int) -> None:
+        """Render the cameras of drones ``lo:hi`` (seeing every drone of ``poses``) in this thread's lane."""
         GL = _gl()
-        gl_context()
         if self._gl is None:
             self._gl = self._build()
         s = self._gl
-        n = len(poses)
-        if self._moved and len(self.moving):
+        if s["moved"] != self._moved and len(self.moving):
             s["movers"].upload(np.concatenate([self._translations, np.zeros((len(self.moving), 1))], axis=1)
                                .astype(np.float32))
-            self._moved = False
-        drones = show_drones and n > 1 and self.drone_radius > 0
+            s["moved"] = self._moved
+        drones = show_drones and len(poses) > 1 and self.drone_radius > 0
+        everyone, poses, n = poses, poses[lo:hi], hi - lo
+        out = {name: image[lo:hi] for name, image in out.items()}
         views, visible, drone_rows = [], [], []
         for cam in self.cameras:
             if cam.width > self._max_side or cam.height > self._max_side:
@@ -530,7 +603,7 @@ class BatchEglRenderer(Renderer):
             view[:, :3, 3] = -np.einsum("aji,aj->ai", gl_rot, origins)
             views.append(view)
             visible.append(self._chunks_in_view(cam, origins, rots) if self._indirect else None)
-            drone_rows.append(self._drone_instances(cam, n, poses, origins, rots) if drones else None)
+            drone_rows.append(self._drone_instances(cam, lo, everyone, origins, rots) if drones else None)
         # Columns of tiles (camera, first agent, count), left to right; a new pass when the atlas is full.
         passes, current, x = [], [], 0
         for c, cam in enumerate(self.cameras):    # about square: float32 interpolation is finer near the origin
@@ -565,12 +638,14 @@ class BatchEglRenderer(Renderer):
         clear = np.linalg.norm(solids[None, :, :] - origins[:, None, :], axis=2) > chunks[:, 11] + reach + 1e-6
         return seen + (seen.astype(bool) & clear & (chunks[:, 7] > 0))
 
-    def _drone_instances(self, cam: CameraSpec, n: int, poses: np.ndarray, origins: np.ndarray,
+    def _drone_instances(self, cam: CameraSpec, lo: int, poses: np.ndarray, origins: np.ndarray,
                          rots: np.ndarray) -> np.ndarray:
-        """Rows ``[centre xyz, segmentation id, agent]`` of every (agent, other drone in its view) pair."""
+        """Rows ``[centre xyz, segmentation id, agent - lo]`` of every (agent, other drone in its view)
+        pair; the agents are drones ``lo:lo + len(origins)`` of ``poses`` (every drone of the call)."""
         centres = poses[:, :3]
         local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])
-        visible = spheres_in_view(cam, local, self.drone_radius) & ~np.eye(n, dtype=bool)
+        own = np.arange(len(origins))[:, None] + lo == np.arange(len(poses))[None, :]
+        visible = spheres_in_view(cam, local, self.drone_radius) & ~own
         agent, other = np.nonzero(visible)
         rows = np.empty((len(agent), 5), np.float32)
         rows[:, :3] = centres[other]
