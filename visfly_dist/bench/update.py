@@ -15,6 +15,12 @@ torch threads.
 
 With ``--compare-kernels`` the same measurement runs again in a child process with the native
 training kernels off (``VISFLY_NATIVE_KERNELS=0``), and the ratio is reported.
+
+``--backbones NAME... | all`` adds, per image backbone (``--backbone`` of train) and image kind
+(``--images depth rgb``: 64x64 depth in metres, 64x64 RGB), the image encoder's cost alone:
+CPU milliseconds per image of a forward and backward pass (training) and of a forward pass without
+gradients (rollouts), at a batch of ``--backbone-batch`` on one torch thread, and its parameters
+(``--skip-update`` leaves the PPO rows out, so no scene worker starts).
 """
 
 from __future__ import annotations
@@ -112,6 +118,54 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
             "ms_per_sample_pass": round(update_cpu / (samples * cfg.n_epochs) * 1e3, 6)}
 
 
+IMAGES = {"depth": ((1, 64, 64), "float32", 20.0), "rgb": ((3, 64, 64), "uint8", 255.0)}
+"""Image kinds of ``bench_backbone``: shape, dtype, upper bound."""
+
+
+def bench_backbone(backbone: str, image: str = "depth", batch: int = 256, reps: int = 3, seed: int = 0) -> dict[str, Any]:
+    """CPU cost per image of ``backbone``'s image encoder (normaliser, trunk, linear to 128), one torch thread.
+
+    Returns:
+        ``backbone, image, params, batch, fwd_bwd_ms_per_image`` (forward and backward, as in a PPO
+        update) and ``forward_ms_per_image`` (no gradients, as in a rollout); CPU time, medians over ``reps``.
+    """
+    import torch
+    from gymnasium import spaces
+
+    from visfly_dist.training.extractors import ImageEncoder
+
+    shape, dtype, high = IMAGES[image]
+    space = spaces.Box(0, high, shape, np.dtype(dtype))
+    torch.manual_seed(seed)
+    encoder = ImageEncoder(space, backbone, "linear", image)
+    x = torch.as_tensor(_sample(space, batch, np.random.default_rng(seed)))
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+
+    def train_pass() -> None:
+        encoder.zero_grad(set_to_none=True)
+        encoder(x).square().mean().backward()
+
+    def forward_pass() -> None:
+        with torch.no_grad():
+            encoder(x)
+
+    timings: dict[str, float] = {}
+    try:
+        for name, fn in (("fwd_bwd_ms_per_image", train_pass), ("forward_ms_per_image", forward_pass)):
+            fn()  # warm-up: allocations, the channels-last switch
+            cpu = []
+            for _ in range(reps):
+                c = time.process_time()
+                fn()
+                cpu.append(time.process_time() - c)
+            timings[name] = round(float(np.median(cpu)) / batch * 1e3, 4)
+    finally:
+        torch.set_num_threads(previous)
+    return {"backbone": backbone, "image": image, "params": sum(p.numel() for p in encoder.parameters()),
+            "batch": batch, **timings}
+
+
 def _sample(space: Any, n: int, rng: np.random.Generator) -> np.ndarray:
     """``n`` observations: images uniform in their range (depth up to 20 m), vectors standard normal."""
     if len(space.shape) == 3:
@@ -135,6 +189,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reps", type=int, default=3, help="timed updates per row (median; default 3)")
     parser.add_argument("--compare-kernels", action="store_true",
                         help="also run with the native training kernels off, in a child process")
+    parser.add_argument("--backbones", nargs="+", metavar="NAME",
+                        help="also time these image backbones alone (names of train's --backbone, or all)")
+    parser.add_argument("--images", nargs="+", choices=tuple(IMAGES), default=list(IMAGES),
+                        help="image kinds of --backbones (default: depth rgb, both 64x64)")
+    parser.add_argument("--backbone-batch", type=int, default=256, help="batch of --backbones (default 256)")
+    parser.add_argument("--skip-update", action="store_true", help="only the --backbones rows (no scene worker starts)")
     parser.add_argument("--json", metavar="FILE", help="write the rows and the machine info here")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
 
@@ -143,8 +203,23 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.bench import report
     from visfly_dist.errors import ConfigError
 
-    if any(t < 1 for t in args.threads) or args.reps < 1:
-        raise ConfigError(f"--threads {args.threads} and --reps {args.reps} must be >= 1")
+    from visfly_dist.training.config import BACKBONES
+
+    if any(t < 1 for t in args.threads) or args.reps < 1 or args.backbone_batch < 1:
+        raise ConfigError(f"--threads {args.threads}, --reps {args.reps} and --backbone-batch {args.backbone_batch} must be >= 1")
+    backbones = list(BACKBONES) if args.backbones == ["all"] else list(args.backbones or [])
+    unknown = [b for b in backbones if b not in BACKBONES]
+    if unknown or (args.skip_update and not backbones):
+        raise ConfigError(f"--backbones {args.backbones}: give some of {list(BACKBONES)} or 'all' "
+                          f"(--skip-update needs them)")
+    backbone_rows = [bench_backbone(b, image, args.backbone_batch, args.reps) for b in backbones for image in args.images]
+    if args.skip_update:
+        result = {"machine": machine_info(), "rows": [], "backbones": backbone_rows, "load_average_end": load_average()}
+        print(report.text_table(backbone_rows))
+        if args.json:
+            report.write_json(result, args.json)
+            print(f"wrote {args.json}")
+        return 0
     rows = [bench_update(args.task, t, args.reps, mode=m) for m in args.modes for t in args.threads]
     if args.child:
         print(json.dumps(rows))
@@ -157,6 +232,9 @@ def run(args: argparse.Namespace) -> int:
         rows += json.loads(child.stdout.strip().splitlines()[-1])
     result: dict[str, Any] = {"machine": machine_info(), "rows": rows, "load_average_end": load_average()}
     print(report.text_table(rows))
+    if backbone_rows:
+        result["backbones"] = backbone_rows
+        print(report.text_table(backbone_rows))
     if args.json:
         report.write_json(result, args.json)
         print(f"wrote {args.json}")

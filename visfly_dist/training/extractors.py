@@ -18,8 +18,16 @@ which :func:`visfly_policy_kwargs` sets):
 - segmentation (uint16 ids): divided by the space's upper bound.
 
 Image backbones: ``"visfly-cnn"`` (VisFly's: conv 6/12/18 channels, kernels 5/3/3, each followed by
-a 2x2 max-pool and ReLU, then a linear layer to 128) and ``"resnet-tiny"`` (three residual stages of
-16/32/64 channels with stride-2 downsampling, global average pooling, linear to 128).
+a 2x2 max-pool and ReLU, then a linear layer to 128), ``"resnet-tiny"`` (three residual stages of
+16/32/64 channels with stride-2 downsampling, global average pooling, linear to 128),
+``"mobilenet-tiny"`` (MobileNetV2's inverted residuals: depthwise 3x3 between 1x1 expansion and
+projection) and ``"efficientnet-tiny"`` (EfficientNet's MBConv blocks with squeeze-excitation and
+SiLU); both of the last two end in a 1x1 convolution to 128 channels and global average pooling,
+take any image size, and normalise with GroupNorm (per sample) rather than BatchNorm, whose batch
+statistics differ between SB3's rollouts (eval mode) and updates (train mode, minibatches split
+across threads). Their blocks follow torchvision's (``Conv2dNormActivation``, ``InvertedResidual``,
+``SqueezeExcitation``, ``MBConv``) but are written here: the torchvision 0.28 wheel that matches
+torch 2.13 is built for CUDA and does not import against the CPU build of torch this project pins.
 
 Training with your own algorithm on a visfly-dist env::
 
@@ -154,6 +162,113 @@ def resnet_tiny(in_channels: int) -> nn.Sequential:
     )
 
 
+def _norm(channels: int) -> nn.GroupNorm:
+    """Group normalisation with up to 8 groups: per sample, so rollouts (eval mode) and PPO updates
+    (train mode, minibatches split across threads) compute the same function, which BatchNorm's
+    batch statistics would not (PPO's probability ratio would start away from 1)."""
+    return nn.GroupNorm(math.gcd(channels, 8), channels)
+
+
+class ConvNormAct(nn.Sequential):
+    """Convolution (no bias), group norm, activation: torchvision's ``Conv2dNormActivation`` with
+    :func:`_norm` in place of BatchNorm; ``groups=channels`` makes it depthwise."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel: int = 3, stride: int = 1, groups: int = 1,
+                 activation: type[nn.Module] | None = nn.ReLU6) -> None:
+        layers: list[nn.Module] = [nn.Conv2d(in_channels, out_channels, kernel, stride, (kernel - 1) // 2, groups=groups, bias=False),
+                                   _norm(out_channels)]
+        if activation is not None:
+            layers.append(activation())
+        super().__init__(*layers)
+
+
+class InvertedResidual(nn.Module):
+    """MobileNetV2's block (Sandler et al. 2018; torchvision's ``InvertedResidual``): 1x1 expansion
+    by ``expand``, 3x3 depthwise convolution (``stride``), linear 1x1 projection; a skip connection
+    when the shape is kept."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int, expand: int) -> None:
+        super().__init__()
+        hidden = in_channels * expand
+        layers: list[nn.Module] = [] if expand == 1 else [ConvNormAct(in_channels, hidden, 1)]
+        layers += [ConvNormAct(hidden, hidden, 3, stride, groups=hidden), ConvNormAct(hidden, out_channels, 1, activation=None)]
+        self.block = nn.Sequential(*layers)
+        self.residual = stride == 1 and in_channels == out_channels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.block(x) if self.residual else self.block(x)
+
+
+class SqueezeExcitation(nn.Module):
+    """Channel attention (Hu et al. 2018; torchvision's ``SqueezeExcitation``): global average,
+    1x1 down to ``squeeze`` channels, SiLU, 1x1 back, sigmoid, scales the input's channels."""
+
+    def __init__(self, channels: int, squeeze: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Conv2d(channels, squeeze, 1)
+        self.fc2 = nn.Conv2d(squeeze, channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        scale = torch.sigmoid(self.fc2(torch.nn.functional.silu(self.fc1(x.mean(dim=(2, 3), keepdim=True)))))
+        return x * scale
+
+
+class MBConv(nn.Module):
+    """EfficientNet's block (Tan and Le 2019; torchvision's ``MBConv`` without stochastic depth):
+    1x1 expansion, ``kernel`` depthwise convolution, squeeze-excitation (a quarter of the input
+    channels), linear 1x1 projection, SiLU activations; a skip connection when the shape is kept."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel: int, stride: int, expand: int) -> None:
+        super().__init__()
+        hidden = in_channels * expand
+        layers: list[nn.Module] = [] if expand == 1 else [ConvNormAct(in_channels, hidden, 1, activation=nn.SiLU)]
+        layers += [ConvNormAct(hidden, hidden, kernel, stride, groups=hidden, activation=nn.SiLU),
+                   SqueezeExcitation(hidden, max(1, in_channels // 4)),
+                   ConvNormAct(hidden, out_channels, 1, activation=None)]
+        self.block = nn.Sequential(*layers)
+        self.residual = stride == 1 and in_channels == out_channels
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.block(x) if self.residual else self.block(x)
+
+
+def mobilenet_tiny(in_channels: int) -> nn.Sequential:
+    """A MobileNetV2-style trunk for small images: stem 3x3/2 to 16, inverted residuals 16, 24/2, 24,
+    32/2, 32, 64/2 (expansion 4 but the first), 1x1 to 128, global average pool (64x64 -> 4x4 -> 128)."""
+    return nn.Sequential(
+        ConvNormAct(in_channels, 16, 3, 2),
+        InvertedResidual(16, 16, 1, 1),
+        InvertedResidual(16, 24, 2, 4),
+        InvertedResidual(24, 24, 1, 4),
+        InvertedResidual(24, 32, 2, 4),
+        InvertedResidual(32, 32, 1, 4),
+        InvertedResidual(32, 64, 2, 4),
+        ConvNormAct(64, 128, 1),
+        nn.AdaptiveAvgPool2d(1),
+        nn.Flatten(),
+    )
+
+
+def efficientnet_tiny(in_channels: int) -> nn.Sequential:
+    """An EfficientNet-B0-style trunk for small images: stem 3x3/2 to 16, MBConv 16 (k3, expansion 1),
+    24/2 (k3), 40/2 (k5), 64/2 (k3) with expansion 4, 1x1 to 128, global average pool; SiLU."""
+    return nn.Sequential(
+        ConvNormAct(in_channels, 16, 3, 2, activation=nn.SiLU),
+        MBConv(16, 16, 3, 1, 1),
+        MBConv(16, 24, 3, 2, 4),
+        MBConv(24, 40, 5, 2, 4),
+        MBConv(40, 64, 3, 2, 4),
+        ConvNormAct(64, 128, 1, activation=nn.SiLU),
+        nn.AdaptiveAvgPool2d(1),
+        nn.Flatten(),
+    )
+
+
+TRUNKS = {"visfly-cnn": visfly_cnn, "resnet-tiny": resnet_tiny, "mobilenet-tiny": mobilenet_tiny,
+          "efficientnet-tiny": efficientnet_tiny}
+"""Backbone name (``config.BACKBONES``) -> trunk builder ``(in_channels) -> nn.Module`` giving ``(B, F)``."""
+
+
 class ImageEncoder(nn.Module):
     """Normaliser, backbone and a linear layer to 128 features, sized with one dummy forward pass.
 
@@ -165,7 +280,7 @@ class ImageEncoder(nn.Module):
     def __init__(self, space: spaces.Box, backbone: str, depth_scale: str, key: str) -> None:
         super().__init__()
         self.normalizer = ImageNormalizer(space, depth_scale)
-        self.trunk = {"visfly-cnn": visfly_cnn, "resnet-tiny": resnet_tiny}[backbone](space.shape[0])
+        self.trunk = TRUNKS[backbone](space.shape[0])
         with torch.no_grad():
             try:
                 flat = self.trunk(self.normalizer(torch.zeros((1, *space.shape)))).shape[1]
