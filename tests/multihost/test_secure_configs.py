@@ -88,18 +88,35 @@ def test_acl_lets_each_role_do_only_its_part(routers, configs, scene_root):
     ep = routers["acl"]
     good = start_worker(RUN, ep, scene_root, connect=True, worker_id="good",
                         extra_args=["--zenoh-config", str(configs / "worker-tls-usrpwd.json5")])
-    # a process holding the trainer's credentials serves scenes: it must receive no query
-    rogue = start_worker(RUN, ep, scene_root, connect=True, worker_id="rogue",
-                         extra_args=["--zenoh-config", str(configs / "trainer-tls-usrpwd.json5")])
-    other_run = start_worker("exp2", ep, scene_root, connect=True, worker_id="other",
-                             extra_args=["--zenoh-config", str(configs / "worker-tls-usrpwd.json5")])
+    # Workers the ACL denies (the trainer's credentials; a run it has no rules for) do not print
+    # "ready": they see that their token does not get through the router, and refuse to start.
+    for run, wid, creds in ((RUN, "rogue", "trainer-tls-usrpwd.json5"), ("exp2", "other", "worker-tls-usrpwd.json5")):
+        proc = subprocess.run([sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", run, "--connect", ep,
+                               "--worker-id", wid, "--scene-root", str(scene_root), "--backend", "raycast",
+                               "--zenoh-config", str(configs / creds)], cwd=REPO, capture_output=True, text=True,
+                              timeout=60)
+        assert proc.returncode == 2 and "ready" not in proc.stdout, (proc.stdout, proc.stderr)
+        assert f"worker {wid!r} declared its liveliness token visfly/{run}/alive/worker/{wid} but a session with " \
+               "the same config" in proc.stderr and "access control denies this user the token" in proc.stderr, \
+            proc.stderr
+    # Sessions that serve anyway, as those workers would have (their declarations are dropped):
+    # one with the trainer's credentials, one of another run; they must receive no query.
+    served = []
+    rogue = open_session(client_of([ep], config_file=str(configs / "trainer-tls-usrpwd.json5")))
+    other_run = open_session(client_of([ep], config_file=str(configs / "worker-tls-usrpwd.json5")))
     trainer = open_session(client_of([ep], config_file=str(configs / "trainer-tls-usrpwd.json5")))
     worker = open_session(client_of([ep], config_file=str(configs / "worker-tls-usrpwd.json5")))
+    rogue_key, other_key = keys.worker_rpc(RUN, "rogue"), keys.worker_rpc("exp2", "other")
+    entities = [rogue.declare_queryable(rogue_key, lambda q: (served.append(q.key_expr), q.reply(q.key_expr, b"x"))),
+                rogue.liveliness().declare_token(keys.worker_alive(RUN, "rogue")),
+                other_run.declare_queryable(other_key, lambda q: (served.append(q.key_expr), q.reply(q.key_expr, b"x"))),
+                other_run.liveliness().declare_token(keys.worker_alive("exp2", "other"))]
     try:
         ok, reply = call(trainer, good.rpc_key, Health().to_message(), timeout=5)
         assert ok and reply["type"] == "health"
-        for session, key in ((trainer, rogue.rpc_key), (worker, good.rpc_key), (trainer, other_run.rpc_key)):
+        for session, key in ((trainer, rogue_key), (worker, good.rpc_key), (trainer, other_key)):
             assert list(session.get(key, payload=b"x", timeout=2, consolidation=zenoh.ConsolidationMode.NONE)) == []
+        assert served == []
         tokens = trainer.liveliness().declare_subscriber(keys.workers_alive_pattern(RUN),
                                                          zenoh.handlers.FifoChannel(16), history=True)
         try:
@@ -109,16 +126,20 @@ def test_acl_lets_each_role_do_only_its_part(routers, configs, scene_root):
         finally:
             tokens.undeclare()
     finally:
-        trainer.close()
-        worker.close()
-        for proc in (good, rogue, other_run):
-            stop_process(proc)
+        for entity in entities:
+            entity.undeclare()
+        for session in (trainer, worker, rogue, other_run):
+            session.close()
+        stop_process(good)
 
 
 def test_a_trainer_denied_by_the_acl_gets_access_denied(routers, configs, scene_root):
     ep = routers["acl"]
-    worker = start_worker("exp2", ep, scene_root, connect=True, worker_id="w",
-                          extra_args=["--zenoh-config", str(configs / "worker-tls-usrpwd.json5")])
+    # A worker of run exp2 (which the ACL has no rules for) refuses to start; a session that declares
+    # what it would have stands in for it: its token and queryable, both dropped by the router.
+    worker = open_session(client_of([ep], config_file=str(configs / "worker-tls-usrpwd.json5")))
+    entities = [worker.declare_queryable(keys.worker_rpc("exp2", "w"), lambda q: q.reply(q.key_expr, b"x")),
+                worker.liveliness().declare_token(keys.worker_alive("exp2", "w"))]
     try:
         agg = make_aggregator(pool={"connect": (ep,), "num_local_workers": 0, "run_id": "exp2", "startup_timeout_s": 2.0,
                                     "zenoh_config": str(configs / "trainer-tls-usrpwd.json5")},
@@ -126,7 +147,9 @@ def test_a_trainer_denied_by_the_acl_gets_access_denied(routers, configs, scene_
         with pytest.raises(AccessDeniedError, match="denies 'trainer' liveliness subscriptions or queries on visfly/exp2"):
             agg.start()
     finally:
-        stop_process(worker)
+        for entity in entities:
+            entity.undeclare()
+        worker.close()
 
 
 def test_a_pool_hands_its_config_to_its_local_workers(routers, configs):

@@ -42,7 +42,7 @@ from visfly_dist.protocol.image_segment import SegmentTarget
 from visfly_dist.protocol.messages import (
     Health, LoadScene, Request, SampleSpawn, StepRequest, UnloadScene, parse_request,
 )
-from visfly_dist.protocol.session import SessionConfig, open_session
+from visfly_dist.protocol.session import SessionConfig, client_of, open_session
 from visfly_dist.scene_worker.image_segments import SegmentMappings
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, gl_device_name, render_scenes_into
 from visfly_dist.scene_worker.limits import MIB, WorkerLimits, resident_bytes
@@ -59,6 +59,8 @@ Respond = Callable[[bool, bytes], None]
 
 DUPLICATE_CHECK_S = 1.0
 """How long a liveliness get for this worker's own id may take at start."""
+VISIBLE_CHECK_S = 5.0
+"""How long a worker with a config file waits to see its own token through the router before it refuses to start."""
 
 
 BACKGROUND_LOAD_NICE = 10
@@ -173,11 +175,42 @@ class SceneWorker:
             self._queryable = self._session.declare_queryable(
                 self.rpc_key, zenoh.handlers.Callback(self._inbox.put, indirect=False))
             self._token = self._session.liveliness().declare_token(self.alive_key)
+            self._check_visible()
         except BaseException:
             self.close()
             raise
         self._started = time.monotonic()
         return self
+
+    def _check_visible(self) -> None:
+        """ConfigError unless this worker's token is seen through the router: a router's access control
+        drops a denied declaration without a word, so a worker it denies would look started.
+
+        Checked with a second, short-lived client session holding the same config (credentials): a
+        session sees its own declarations locally, never what the router made of them. Only for a
+        worker that connects with a config file, since access control identifies users by the
+        credentials such a file holds; the router's ACL must let workers ask for worker tokens
+        (rule ``worker-check-token`` in ``deploy/zenoh/router-acl.json5``).
+        """
+        cfg = self.session_config
+        if cfg.config_file is None or not cfg.connect:
+            return
+        checker = open_session(client_of(cfg.connect, shared_memory=False, lease_ms=cfg.lease_ms,
+                                         config_file=cfg.config_file))
+        try:
+            deadline = time.monotonic() + VISIBLE_CHECK_S
+            while time.monotonic() < deadline:
+                if any(r.ok is not None for r in checker.liveliness().get(self.alive_key, timeout=DUPLICATE_CHECK_S)):
+                    return
+                time.sleep(0.1)
+        finally:
+            checker.close()
+        raise ConfigError(
+            f"worker {self.worker_id!r} declared its liveliness token {self.alive_key} but a session with the same "
+            f"config ({cfg.config_file}) does not see it through {list(cfg.connect)} within {VISIBLE_CHECK_S:g} s: "
+            "the router's access control denies this user the token (or the query of it); no trainer could reach "
+            "this worker. Check the user and the run id against the router's ACL (deploy/zenoh/router-acl.json5: "
+            "workers need liveliness_token, and liveliness_query for this check, on visfly/<run>/alive/worker/*)")
 
     def _refuse_duplicate_id(self) -> None:
         """ConfigError if a live worker of this run, reachable now, already holds this worker id.
