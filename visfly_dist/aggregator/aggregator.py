@@ -50,8 +50,15 @@ from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, Unload
 
 log = logging.getLogger(__name__)
 
+LOAD_QUEUE_ALLOWANCE_S = 2.0
+"""Seconds added to a load's deadline for every load queued before it on the same worker (a garage
+takes about 0.3 s on one core): 256 scenes placed on 2 workers at start-up must not time out
+behind each other."""
+
 SPAWN_POOL_MIN = 256
 UNLOAD_DELAY_COLLECTS = 2
+OVERLOADED_BACKOFF_S = (1.0, 30.0)
+"""First and longest wait before a worker that answered ``overloaded`` is given a new scene again."""
 MAX_CACHED_PLANS = 8
 """Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
@@ -193,6 +200,7 @@ class Aggregator:
         self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
         self._stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
+        self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
         self._collects = 0
         self._spawn_pools: dict[tuple, np.ndarray] = {}
         self._spawn_draws: dict[tuple, int] = {}
@@ -591,11 +599,12 @@ class Aggregator:
         if not live:
             live = self._wait_out_outage()
             gens = {w: self._pool.generation(w) for w in live}
-        plan = self.table.plan_placement(live, gens)
+        placeable = self._placeable(live)
+        plan = self.table.plan_placement(placeable, gens)
         if not plan and not self._background and not self.table.orphans():
-            plan = self.table.plan_rebalance(live, gens)
+            plan = self.table.plan_rebalance(placeable, gens)
         self._send_loads(plan)
-        busy = plan or self._background or self._pending_switch
+        busy = plan or self._background or self._pending_switch or len(placeable) < len(live)
         self._settled = None if busy else (self.table.revision, tuple(gens.items()))
 
     def _wait_out_outage(self) -> list[str]:
@@ -614,9 +623,14 @@ class Aggregator:
     def _send_loads(self, plan: list[tuple[int, Move]]) -> None:
         if not plan:
             return
-        requests = [(move.worker, LoadScene(move.key, move.source, self.cameras, self.drone_radius,
-                                            self.multi_agent).to_message()) for _, move in plan]
-        for (slot, move), pending in zip(plan, self._pool.send(requests, self.pool_config.startup_timeout_s)):
+        queued: dict[str, int] = {}  # loads sent to each worker so far in this batch
+        for slot, move in plan:
+            ahead = queued.get(move.worker, 0)
+            queued[move.worker] = ahead + 1
+            # a worker loads one scene at a time: this load may first wait for the ones ahead of it
+            timeout_s = self.pool_config.startup_timeout_s + ahead * LOAD_QUEUE_ALLOWANCE_S
+            request = LoadScene(move.key, move.source, self.cameras, self.drone_radius, self.multi_agent).to_message()
+            (pending,) = self._pool.send([(move.worker, request)], timeout_s)
             self._background.append(_Background("load", pending, slot, move))
         log.info("run %s: loading in the background: %s", self.run_id,
                  [(slot, move.worker, move.reason) for slot, move in plan])
@@ -648,6 +662,12 @@ class Aggregator:
         assert move is not None
         if reply.message is None:
             self.table.fail_move(job.slot, move)
+            if reply.error is not None and reply.error.code == ErrorCode.SCENE_ERROR:
+                self._drop_source(job.slot, move, reply.error)
+                return
+            if reply.error is not None and reply.error.code == ErrorCode.OVERLOADED:
+                self._back_off(move.worker, reply.error)
+                return
             if reply.error is not None and not is_unknown_scene(reply.error):
                 raise RemoteError(move.worker, reply.error.error_type,
                                   f"loading {move.source!r} into slot {job.slot}: {reply.error.message}")
@@ -668,6 +688,32 @@ class Aggregator:
                 still.append(self._spawn_job(job.slot, move.worker, move.key, move.source, spec))
             return
         self._switch(job.slot, move, move_bounds, move_meta)
+
+    def _drop_source(self, slot: int, move: Move, error: RemoteError) -> None:
+        """A source that cannot load (``scene_error``) leaves the dataset; an orphan slot that waited
+        for it takes the next source. The run fails only when no source is left."""
+        why = f"{error.message} (worker {move.worker})"
+        log.warning("run %s: scene source %r cannot be loaded and is dropped from the dataset: %s",
+                    self.run_id, move.source, why)
+        if not self.dataset.drop(move.source, why):
+            raise ConfigError(f"run {self.run_id!r}: no scene source can be loaded: "
+                              + "; ".join(f"{src!r}: {w}" for src, w in self.dataset.dropped.items()))
+        s = self.table.slots[slot]
+        if s.worker is None and s.source == move.source:
+            s.source = self.dataset.next_source()
+
+    def _back_off(self, worker: str, error: RemoteError) -> None:
+        """A worker that is full (``overloaded``) gets no new scene for a while (doubling per refusal)."""
+        _, wait = self._full.get(worker, (0.0, OVERLOADED_BACKOFF_S[0] / 2))
+        wait = min(2 * wait, OVERLOADED_BACKOFF_S[1])
+        self._full[worker] = (time.monotonic() + wait, wait)
+        log.warning("run %s: worker %s is full (%s); no new scene for it for %g s", self.run_id, worker,
+                    error.message, wait)
+
+    def _placeable(self, live: Sequence[str]) -> list[str]:
+        """The live workers that may take new scenes now (not backing off after ``overloaded``)."""
+        now = time.monotonic()
+        return [w for w in live if self._full.get(w, (0.0, 0.0))[0] <= now]
 
     def _switch(self, slot: int, move: Move, bounds: Any, metadata: dict[str, Any]) -> None:
         old_worker, old_key = self.table.finish_move(slot, move, bounds, metadata)
@@ -863,7 +909,11 @@ class Aggregator:
             if not self.table.orphans():
                 return
             live = self._pool.require_live()
-            self._send_loads(self.table.plan_placement(live, {w: self._pool.generation(w) for w in live}))
+            placeable = self._placeable(live)
+            if not placeable:  # every worker is full for now: wait for the first backoff to end
+                time.sleep(max(0.0, min(self._full[w][0] for w in live) - time.monotonic()))
+                continue
+            self._send_loads(self.table.plan_placement(placeable, {w: self._pool.generation(w) for w in live}))
             jobs = [j for j in self._background if j.kind == "load"]
             self._pool.gather([j.pending for j in jobs])
             self._apply_background()

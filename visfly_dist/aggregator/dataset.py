@@ -121,6 +121,20 @@ class SceneDataset:
         self.shuffle = shuffle
         self._rng = np.random.default_rng(seed)
         self._order: list[int] = []
+        self._origin: dict[str, str] = {}  # concrete source handed out -> its entry
+        self.dropped: dict[str, str] = {}  # entry -> why it was dropped
+
+    def drop(self, source: str, why: str) -> bool:
+        """Stop handing out the entry ``source`` (a concrete source from :meth:`next_source`) came
+        from. Returns whether any entry remains; a source dropped already changes nothing."""
+        entry = self._origin.get(source, source)
+        if entry in self.entries:
+            keep = [e for e in self.entries if e != entry]
+            order = [self.entries[i] for i in self._order if self.entries[i] != entry]
+            self.entries = keep
+            self._order = [keep.index(e) for e in order]
+            self.dropped[entry] = why
+        return bool(self.entries)
 
     def next_source(self) -> str:
         """The next concrete source (a seeded gen spec or a root-relative path)."""
@@ -130,9 +144,11 @@ class SceneDataset:
                 idx = self._rng.permutation(idx)
             self._order = [int(i) for i in idx]
         entry = self.entries[self._order.pop(0)]
+        source = entry
         if entry.startswith(GEN_PREFIX) and not has_seed(entry):
-            entry = with_seed(entry, int(self._rng.integers(0, 2**31 - 1)))
-        return entry
+            source = with_seed(entry, int(self._rng.integers(0, 2**31 - 1)))
+        self._origin[source] = entry
+        return source
 
     def take(self, n: int) -> list[str]:
         """The next ``n`` sources."""

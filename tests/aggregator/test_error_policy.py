@@ -1,0 +1,62 @@
+"""What each error code of a load does to a run, with real workers: ``scene_error`` drops the source
+(the run goes on while sources remain), ``overloaded`` backs off from that worker."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from tests.aggregator.conftest import make_aggregator, spawn_poses
+from tests.helpers import REPO, _read_line, free_port, start_worker, stop_process
+from visfly_dist.errors import ConfigError
+
+BAD = "gen:garage-stones?density=3"  # passes the config check; every worker refuses it (density <= 1)
+
+
+def test_a_source_that_cannot_load_is_dropped_and_the_run_goes_on():
+    agg = make_aggregator(pool={"num_local_workers": 1},
+                          scenes={"sources": ("gen:pillars", BAD), "num_scenes": 3, "agents_per_scene": 2,
+                                  "shuffle": False})
+    with agg:
+        assert list(agg.dataset.dropped) == [BAD] and "density=3" in agg.dataset.dropped[BAD]
+        assert all(agg.slot_source(i).startswith("gen:pillars?") for i in range(agg.num_scenes))
+        assert set(agg.assignment().values()) == {"local-0"}
+        assert not agg.observe(spawn_poses(agg)).lost.any()
+
+
+def test_a_run_whose_every_source_fails_to_load_fails_at_start_naming_them():
+    agg = make_aggregator(pool={"num_local_workers": 1},
+                          scenes={"sources": (BAD, "gen:pillars?density=9"), "num_scenes": 2, "agents_per_scene": 1})
+    with pytest.raises(ConfigError, match=r"no scene source can be loaded: 'gen:garage-stones\?density=3': .*density=3.*"
+                                          r"'gen:pillars\?density=9': .*density=9"):
+        agg.start()
+
+
+def test_an_overloaded_worker_gets_no_new_scene_for_a_while_and_the_others_take_it(scene_root):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    workers = []
+    try:
+        assert "router ready" in _read_line(router, 30.0)
+        workers = [start_worker("full", endpoint, scene_root, connect=True, worker_id="wa",
+                                extra_args=["--max-scenes", "1"]),
+                   start_worker("full", endpoint, scene_root, connect=True, worker_id="wb")]
+        with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "full", "min_workers": 2},
+                             scenes={"sources": ("gen:pillars",), "num_scenes": 3, "agents_per_scene": 2}) as agg:
+            # Placement asked wa for two scenes (wa, wb, wa); it took one and refused the other.
+            assert sorted(agg.assignment().values()) == ["wa", "wb", "wb"]
+            poses = spawn_poses(agg)
+            end = time.monotonic() + 2.5  # past the first backoff (1 s): nothing moves back onto the full worker
+            while time.monotonic() < end:
+                assert not agg.observe(poses).lost.any()
+            assert {h["worker_id"]: len(h["scenes"]) for h in agg.health()} == {"wa": 1, "wb": 2}
+            assert np.array_equal(np.sort(list(agg.assignment().values())), ["wa", "wb", "wb"])
+    finally:
+        for proc in workers:
+            stop_process(proc)
+        stop_process(router)
