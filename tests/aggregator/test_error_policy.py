@@ -12,7 +12,7 @@ import pytest
 
 from tests.aggregator.conftest import make_aggregator, spawn_poses
 from tests.helpers import REPO, _read_line, free_port, start_worker, stop_process
-from visfly_dist.errors import ConfigError
+from visfly_dist.errors import ConfigError, RemoteError
 
 BAD = "gen:garage-stones?density=3"  # passes the config check; every worker refuses it (density <= 1)
 
@@ -59,4 +59,26 @@ def test_an_overloaded_worker_gets_no_new_scene_for_a_while_and_the_others_take_
     finally:
         for proc in workers:
             stop_process(proc)
+        stop_process(router)
+
+
+def test_a_step_over_a_workers_pixel_bound_fails_at_the_first_observation(scene_root):
+    """``too_large`` is the run's configuration against the workers' bounds: it fails at once (the env's
+    reset), not somewhere in training."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        assert "router ready" in _read_line(router, 30.0)
+        worker = start_worker("big", endpoint, scene_root, connect=True, worker_id="small",
+                              extra_args=["--max-pixels", "1000"])  # 32 x 24 depth: 768 pixels per agent
+        with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "big"},
+                             scenes={"sources": ("gen:pillars",), "num_scenes": 1, "agents_per_scene": 2}) as agg:
+            with pytest.raises(RemoteError, match=r"step asks for 1536 pixels .* over this worker's bound of 1000") as err:
+                agg.observe(np.tile(np.array([[2.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]], np.float32), (2, 1)))
+            assert err.value.code == "too_large"
+    finally:
+        if worker is not None:
+            stop_process(worker)
         stop_process(router)
