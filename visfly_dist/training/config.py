@@ -125,6 +125,8 @@ class TrainConfig:
         log_std_init: initial log standard deviation of the policy's Gaussian action noise (actions
             are clipped to [-1, 1]); ``None``: the task's default.
         checkpoint_every: save a checkpoint every this many env steps (0: only the final model).
+        video_every: film one deterministic episode every this many env steps, in the background
+            (``RUN/videos/step-<n>.gif`` and TensorBoard; :mod:`visfly_dist.training.training_video`); 0: never.
         backbone: image backbone of the extractor.
         normalize: running normalisation of vector observations and of rewards (VecNormalize).
         progress: print progress lines.
@@ -167,6 +169,7 @@ class TrainConfig:
     clip_range: float = 0.2
     log_std_init: float | None = None
     checkpoint_every: int = 50_000
+    video_every: int = 0
     backbone: str = "visfly-cnn"
     normalize: bool = True
     progress: bool = True
@@ -194,7 +197,7 @@ class TrainConfig:
     def problems(self) -> list[str]:
         """Every problem with this (resolved) config, as messages (empty when valid)."""
         out: list[str] = []
-        for name, low in (("timesteps", 1), ("num_envs", 1), ("n_steps", 1), ("batch_size", 2), ("n_epochs", 1), ("checkpoint_every", 0), ("threads", 1)):
+        for name, low in (("timesteps", 1), ("num_envs", 1), ("n_steps", 1), ("batch_size", 2), ("n_epochs", 1), ("checkpoint_every", 0), ("video_every", 0), ("threads", 1)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 out.append(f"{name}={value!r} must be an int >= {low}")

@@ -44,6 +44,7 @@ from visfly_dist.training.host_plan import apply_host_plan
 from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
 from visfly_dist.training.tensor_ppo import TensorPPO
+from visfly_dist.training.training_video import VideoCallback, video_for
 
 
 @dataclass
@@ -164,14 +165,18 @@ def train(cfg: TrainConfig) -> TrainResult:
         write_config(cfg, run_dir)
         model = build_model(cfg, env)
         success = SuccessCallback(run_dir, cfg.timesteps, verbose=int(cfg.progress))
+        video = video_for(cfg)
         if tensor:
             trainer = TensorPPO(model, env, normalize=cfg.normalize, overlap=bool(cfg.overlap),
                                 update_threads=cfg.update_threads, cpu_cores=usable_cores())
             checkpoints = Checkpoints(run_dir / "checkpoints", cfg.checkpoint_every, trainer.save)
-            learn = lambda: trainer.learn(cfg.timesteps, success, on_rollout_end=checkpoints)  # noqa: E731
+            on_rollout_end = checkpoints if video is None else (  # noqa: E731
+                lambda n: (checkpoints(n), video.maybe_record(n, model.policy, trainer.norm)))
+            learn = lambda: trainer.learn(cfg.timesteps, success, on_rollout_end=on_rollout_end)  # noqa: E731
             save, phases = trainer.save, trainer.phase_seconds
         else:
             callbacks = [success] + ([CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every)] if cfg.checkpoint_every else [])
+            callbacks += [VideoCallback(video)] if video is not None else []
             learn = lambda: model.learn(cfg.timesteps, callback=callbacks, progress_bar=False)  # noqa: E731
             save, phases = (lambda path: save_checkpoint(model, path)), getattr(model, "phase_seconds", {})
         try:
@@ -181,6 +186,8 @@ def train(cfg: TrainConfig) -> TrainResult:
             print(f"interrupted at {model.num_timesteps:,} steps; saving the model", file=sys.stderr, flush=True)
             if not tensor:
                 success.on_training_end()
+        if video is not None:
+            video.close(wait=True)  # the last film, if one is running
         final = save(run_dir / "final.zip")
         summary = {**success.summary(), **phases}
         result = TrainResult(run_dir, final, model.num_timesteps, interrupted, summary, cfg)

@@ -59,6 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ent-coef", type=float, default=0.0, help="entropy bonus (default 0)")
     parser.add_argument("--log-std-init", type=float, help="initial log std of the action noise (default: per task)")
     parser.add_argument("--checkpoint-every", type=int, default=50_000, metavar="STEPS", help="0: only the final model")
+    parser.add_argument("--video-every", type=int, default=0, metavar="STEPS",
+                        help="film a deterministic episode every STEPS env steps in the background (videos/step-<n>.gif "
+                             "and TensorBoard; default 0: off, as it takes CPU from training)")
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
     parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
@@ -112,6 +115,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         ent_coef=args.ent_coef,
         log_std_init=args.log_std_init,
         checkpoint_every=args.checkpoint_every,
+        video_every=args.video_every,
         backbone=args.backbone,
         normalize=not args.no_normalize,
         overlap=args.overlap,
