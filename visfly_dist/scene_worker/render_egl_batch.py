@@ -632,10 +632,11 @@ class BatchEglRenderer(Renderer):
             shift = self._translations[movers[movers >= 0]]
             centres[movers >= 0] += shift
             solids[movers >= 0] += shift
-        local = np.einsum("aji,akj->aki", rots, centres[None, :, :] - origins[:, None, :])
+        local = (centres[None, :, :] - origins[:, None, :]) @ rots        # (n, K, 3) in the camera frames
         seen = spheres_in_view(cam, local, chunks[:, 5]).astype(np.int8)
         reach = cam.near * np.sqrt(1.0 + (0.5 * cam.width / cam.focal_px) ** 2 + (0.5 * cam.height / cam.focal_px) ** 2)
-        clear = np.linalg.norm(solids[None, :, :] - origins[:, None, :], axis=2) > chunks[:, 11] + reach + 1e-6
+        away = solids[None, :, :] - origins[:, None, :]
+        clear = np.einsum("aki,aki->ak", away, away) > (chunks[:, 11] + reach + 1e-6) ** 2
         return seen + (seen.astype(bool) & clear & (chunks[:, 7] > 0))
 
     def _drone_instances(self, cam: CameraSpec, lo: int, poses: np.ndarray, origins: np.ndarray,
@@ -643,7 +644,7 @@ class BatchEglRenderer(Renderer):
         """Rows ``[centre xyz, segmentation id, agent - lo]`` of every (agent, other drone in its view)
         pair; the agents are drones ``lo:lo + len(origins)`` of ``poses`` (every drone of the call)."""
         centres = poses[:, :3]
-        local = np.einsum("aji,abj->abi", rots, centres[None, :, :] - origins[:, None, :])
+        local = (centres[None, :, :] - origins[:, None, :]) @ rots
         own = np.arange(len(origins))[:, None] + lo == np.arange(len(poses))[None, :]
         visible = spheres_in_view(cam, local, self.drone_radius) & ~own
         agent, other = np.nonzero(visible)
