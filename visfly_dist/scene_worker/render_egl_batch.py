@@ -64,7 +64,10 @@ layout(location = 0) in vec3 position;
 layout(location = 1) in float object_id;
 layout(location = 2) in float mover;        // index of the moving object, -1: static
 layout(location = 3) in vec3 offset;        // drone instance: sphere centre (scene: constant 0)
-layout(location = 4) in float instance_tile; // the tile (scene: from the instance and tile_base)
+layout(location = 4) in vec4 tile_r0;       // per instance: the tile's world -> eye rows ...
+layout(location = 9) in vec4 tile_r1;
+layout(location = 10) in vec4 tile_r2;
+layout(location = 11) in vec4 tile_place;   // ... and its place in the atlas (xy)
 #if KIND == 2
 layout(location = 5) in vec2 uv;
 layout(location = 6) in vec3 colour;        // corner colour, or the texture's factor
@@ -77,20 +80,14 @@ flat out float v_texture;
 out vec3 v_world;
 flat out vec3 v_centre;
 #endif
-uniform samplerBuffer tiles;
 uniform samplerBuffer movers;
 uniform bool drones;                        // instances are (tile, drone) pairs, not tiles
-uniform int tile_base;                      // added to instance_tile
 uniform vec4 proj;                          // 2f/w, 2f/h, and the z row of the projection
 uniform vec2 tile_scale;                    // tile size / atlas size
 out float eye_depth;
 flat out float seg_id;
 void main() {
-    int tile = int(instance_tile + 0.5) + tile_base;
-    vec4 r0 = texelFetch(tiles, 4 * tile);
-    vec4 r1 = texelFetch(tiles, 4 * tile + 1);
-    vec4 r2 = texelFetch(tiles, 4 * tile + 2);
-    vec4 place = texelFetch(tiles, 4 * tile + 3);
+    vec4 r0 = tile_r0, r1 = tile_r1, r2 = tile_r2, place = tile_place;
     vec3 world = position + offset;
     if (mover >= 0.0) world += texelFetch(movers, int(mover + 0.5)).xyz;
     vec4 w = vec4(world, 1.0);
@@ -406,20 +403,18 @@ class BatchEglRenderer(Renderer):
         for kind in kinds:
             program = _link(KINDS.index(kind))
             s["programs"][kind] = (program, {name: GL.glGetUniformLocation(program, name) for name in (
-                "tiles", "movers", "drones", "tile_base", "proj", "tile_scale", "texels", "texture_info",
+                "movers", "drones", "proj", "tile_scale", "texels", "texture_info",
                 "light", "ambient", "drone_rgb")})
         geometry = _Geometry(self.scene, "rgb" in kinds)
         s["chunks"] = geometry.chunks
         s["faces"] = len(geometry.indices) // 3
-        for name, fmt in (("tiles", GL.GL_RGBA32F), ("movers", GL.GL_RGBA32F), ("texels", GL.GL_RGBA8),
-                          ("texture_info", GL.GL_RGBA32I)):
+        for name, fmt in (("movers", GL.GL_RGBA32F), ("texels", GL.GL_RGBA8), ("texture_info", GL.GL_RGBA32I)):
             s[name] = _Buffer(GL.GL_TEXTURE_BUFFER, fmt)
-        s["instances"] = _Buffer(GL.GL_ARRAY_BUFFER)      # drones: per (tile, drone) centre, id, tile
-        s["tile_ids"] = _Buffer(GL.GL_ARRAY_BUFFER)       # scene: per instance its tile (0, 1, ...)
+        s["tiles"] = _Buffer(GL.GL_ARRAY_BUFFER)          # scene: per tile (instance) its view rows and place
+        s["instances"] = _Buffer(GL.GL_ARRAY_BUFFER)      # drones: per (tile, drone) centre, id, the tile's rows
         s["commands"] = _Buffer(GL.GL_DRAW_INDIRECT_BUFFER)
         s["movers"].upload(np.zeros((max(len(self.moving), 1), 4), np.float32))
-        s["tile_ids"].upload(np.arange(1024, dtype=np.float32))
-        s["tile_count"] = 1024
+        s["tiles"].upload(np.zeros((1, _TILE_TEXELS, 4), np.float32))
         if {"depth", "segmentation"} & set(kinds):
             s["vao"] = self._vao(geometry.indexed, geometry.indices, 20, ((0, 3, 0), (1, 1, 3), (2, 1, 4)), s)
         if "rgb" in kinds:
@@ -455,14 +450,14 @@ class BatchEglRenderer(Renderer):
                             index_data if index_data.nbytes else None, GL.GL_STATIC_DRAW)
             s["buffers"].append(ebo)
         if instances is not None:
-            instances.upload(np.zeros((1, 5), np.float32))
+            instances.upload(np.zeros((1, 20), np.float32))
             GL.glBindBuffer(GL.GL_ARRAY_BUFFER, instances.buffer)
-            _attribute(3, 3, 20, 0, divisor=1)
-            _attribute(1, 1, 20, 12, divisor=1)
-            _attribute(4, 1, 20, 16, divisor=1)
+            _attribute(3, 3, 80, 0, divisor=1)
+            _attribute(1, 1, 80, 12, divisor=1)
+            _tile_attributes(16, 80)
         else:
-            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, s["tile_ids"].buffer)
-            _attribute(4, 1, 4, 0, divisor=1)
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, s["tiles"].buffer)
+            _tile_attributes(0, 64)
         GL.glBindVertexArray(0)
         s["vaos"].append(vao)
         return vao
@@ -488,7 +483,7 @@ class BatchEglRenderer(Renderer):
             return
         for program, _ in s["programs"].values():
             GL.glDeleteProgram(program)
-        for name in ("tiles", "movers", "texels", "texture_info", "instances", "tile_ids", "commands"):
+        for name in ("tiles", "movers", "texels", "texture_info", "instances", "commands"):
             s[name].delete()
         GL.glDeleteVertexArrays(len(s["vaos"]), s["vaos"])
         GL.glDeleteBuffers(len(s["buffers"]), s["buffers"])
@@ -673,10 +668,8 @@ class BatchEglRenderer(Renderer):
             blocks.append(block)
             firsts.append(tile)
             tile += count
-        s["tiles"].upload(np.concatenate(blocks))
-        if tile > s["tile_count"]:
-            s["tile_count"] = max(tile, 2 * s["tile_count"])
-            s["tile_ids"].upload(np.arange(s["tile_count"], dtype=np.float32))
+        tiles = np.concatenate(blocks)
+        s["tiles"].upload(tiles)
         commands = self._commands(columns, firsts, visible) if self._indirect else None
         GL.glViewport(0, 0, atlas_w, atlas_h)
         GL.glDisable(GL.GL_CULL_FACE)
@@ -702,9 +695,10 @@ class BatchEglRenderer(Renderer):
             else:
                 GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([*(np.asarray(SKY_RGB) / 255.0), 1.0], np.float32))
             rows = drone_rows[c]
-            if rows is not None:
-                rows = rows[(rows[:, 4] >= a) & (rows[:, 4] < a + count)].copy()
-                rows[:, 4] += first - a
+            if rows is not None:   # centre, id, then the rows of the seeing agent's tile
+                rows = rows[(rows[:, 4] >= a) & (rows[:, 4] < a + count)]
+                rows = np.concatenate([rows[:, :4], tiles[rows[:, 4].astype(np.int64) + first - a].reshape(-1, 16)],
+                                      axis=1)
             self._draw_column(cam, first, count, atlas_w, atlas_h, rows,
                               None if commands is None else commands[k])
         GL.glDisable(GL.GL_SCISSOR_TEST)
@@ -768,7 +762,6 @@ class BatchEglRenderer(Renderer):
         GL.glUniform4f(u["proj"], 2.0 * f / cam.width, 2.0 * f / cam.height,
                        -(far + near) / (far - near), -2.0 * far * near / (far - near))
         GL.glUniform2f(u["tile_scale"], cam.width / atlas_w, cam.height / atlas_h)
-        _bind_texture(0, s["tiles"].texture, u["tiles"])
         _bind_texture(1, s["movers"].texture, u["movers"])
         rgb = cam.kind == "rgb"
         if rgb:
@@ -783,7 +776,6 @@ class BatchEglRenderer(Renderer):
             GL.glBindVertexArray(s["corner_vao"] if rgb else s["vao"])
             if commands is not None:      # per tile, the runs of chunks in its view
                 GL.glBindBuffer(GL.GL_DRAW_INDIRECT_BUFFER, s["commands"].buffer)
-                GL.glUniform1i(u["tile_base"], 0)
                 for (offset, draws), one_sided in zip(commands, (False, True)):
                     if one_sided:   # outward faces are counter-clockwise, clockwise on the flipped tiles
                         GL.glEnable(GL.GL_CULL_FACE)
@@ -795,8 +787,9 @@ class BatchEglRenderer(Renderer):
                         GL.glMultiDrawElementsIndirect(GL.GL_TRIANGLES, GL.GL_UNSIGNED_INT, ctypes.c_void_p(offset),
                                                        draws, 0)
                 GL.glDisable(GL.GL_CULL_FACE)
-            else:                         # every tile draws everything
-                GL.glUniform1i(u["tile_base"], first)
+            else:                         # every tile draws everything; instance k: tile first + k
+                GL.glBindBuffer(GL.GL_ARRAY_BUFFER, s["tiles"].buffer)
+                _tile_attributes(64 * first, 64)
                 if rgb:
                     GL.glDrawArraysInstanced(GL.GL_TRIANGLES, 0, 3 * s["faces"], count)
                 else:
@@ -808,7 +801,6 @@ class BatchEglRenderer(Renderer):
         s["instances"].upload(drone_rows)
         GL.glBindVertexArray(s["drone"])
         GL.glUniform1i(u["drones"], 1)
-        GL.glUniform1i(u["tile_base"], 0)
         GL.glDrawElementsInstanced(GL.GL_TRIANGLES, s["drone_count"], GL.GL_UNSIGNED_INT, ctypes.c_void_p(0),
                                    len(drone_rows))
 
@@ -819,6 +811,12 @@ def _attribute(location: int, size: int, stride: int, offset: int, divisor: int 
     GL.glVertexAttribPointer(location, size, GL.GL_FLOAT, GL.GL_FALSE, stride, ctypes.c_void_p(offset))
     if divisor:
         GL.glVertexAttribDivisor(location, divisor)
+
+
+def _tile_attributes(offset: int, stride: int) -> None:
+    """Per-instance attributes 4, 9, 10, 11: a tile's three world -> eye rows and its place, at ``offset``."""
+    for k, location in enumerate((4, 9, 10, 11)):
+        _attribute(location, 4, stride, offset + 16 * k, divisor=1)
 
 
 def _bind_texture(unit: int, texture: int, location: int) -> None:
