@@ -652,6 +652,7 @@ class BatchEglRenderer(Renderer):
     def _draw_pass(self, columns: list[tuple[int, int, int, int]], views: list[np.ndarray],
                    visible: list[np.ndarray | None], drone_rows: list[np.ndarray | None],
                    out: dict[str, np.ndarray]) -> None:
+        """Draw one atlas of columns ``(camera, first agent, count, x)`` and read each column back."""
         GL = _gl()
         s = self._gl
         width = sum(self.cameras[c].width for c, _, _, _ in columns)
@@ -659,18 +660,24 @@ class BatchEglRenderer(Renderer):
         self._atlas(width, height)
         atlas_w, atlas_h = s["size"]
         # The pass's tiles in column order: view rows and the place of each tile in the atlas.
-        firsts, blocks, tile = [], [], 0
+        blocks = []
         for c, a, count, x0 in columns:
             cam = self.cameras[c]
             block = views[c][a:a + count].copy()
             block[:, 3, 0] = (2.0 * x0 + cam.width) / atlas_w - 1.0
             block[:, 3, 1] = (2.0 * np.arange(count) * cam.height + cam.height) / atlas_h - 1.0
             blocks.append(block)
-            firsts.append(tile)
-            tile += count
         tiles = np.concatenate(blocks)
-        s["tiles"].upload(tiles)
-        commands = self._commands(columns, firsts, visible) if self._indirect else None
+        # Cameras of the pass: their columns are consecutive, so their tiles and agents are too.
+        groups, tile = [], 0
+        for c in dict.fromkeys(c for c, _, _, _ in columns):
+            mine = [col for col in columns if col[0] == c]
+            count = sum(col[2] for col in mine)
+            groups.append((c, mine, tile, mine[0][1], count))
+            tile += count
+        draws = self._commands(groups, tiles, visible) if self._indirect else None
+        if draws is None:
+            s["tiles"].upload(tiles)
         GL.glViewport(0, 0, atlas_w, atlas_h)
         GL.glDisable(GL.GL_CULL_FACE)
         GL.glDisable(GL.GL_BLEND)
@@ -683,11 +690,12 @@ class BatchEglRenderer(Renderer):
         GL.glEnable(GL.GL_SCISSOR_TEST)
         GL.glScissor(0, 0, width, height)
         GL.glClear(GL.GL_DEPTH_BUFFER_BIT)
-        for k, ((c, a, count, x0), first) in enumerate(zip(columns, firsts)):
+        for k, (c, mine, first, agent0, count) in enumerate(groups):
             cam = self.cameras[c]
             slot = KINDS.index(cam.kind)
             GL.glDrawBuffers(slot + 1, [GL.GL_NONE] * slot + [GL.GL_COLOR_ATTACHMENT0 + slot])
-            GL.glScissor(x0, 0, cam.width, cam.height * count)      # draws stay in the column too
+            x0, x1 = mine[0][3], mine[-1][3] + cam.width
+            GL.glScissor(x0, 0, x1 - x0, cam.height * max(col[2] for col in mine))   # draws stay in it too
             if cam.kind == "depth":
                 GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([cam.far, 0, 0, 0], np.float32))
             elif cam.kind == "segmentation":
@@ -696,11 +704,10 @@ class BatchEglRenderer(Renderer):
                 GL.glClearBufferfv(GL.GL_COLOR, slot, np.array([*(np.asarray(SKY_RGB) / 255.0), 1.0], np.float32))
             rows = drone_rows[c]
             if rows is not None:   # centre, id, then the rows of the seeing agent's tile
-                rows = rows[(rows[:, 4] >= a) & (rows[:, 4] < a + count)]
-                rows = np.concatenate([rows[:, :4], tiles[rows[:, 4].astype(np.int64) + first - a].reshape(-1, 16)],
+                rows = rows[(rows[:, 4] >= agent0) & (rows[:, 4] < agent0 + count)]
+                rows = np.concatenate([rows[:, :4], tiles[rows[:, 4].astype(np.int64) + first - agent0].reshape(-1, 16)],
                                       axis=1)
-            self._draw_column(cam, first, count, atlas_w, atlas_h, rows,
-                              None if commands is None else commands[k])
+            self._draw_camera(cam, first, count, atlas_w, atlas_h, rows, None if draws is None else draws[k])
         GL.glDisable(GL.GL_SCISSOR_TEST)
         for k in range(4):
             GL.glDisable(GL.GL_CLIP_DISTANCE0 + k)
@@ -722,38 +729,39 @@ class BatchEglRenderer(Renderer):
                 _read(x0, cam.width, cam.height * count, fmt, kind, staging)
                 dest[...] = staging
 
-    def _commands(self, columns: list[tuple[int, int, int, int]], firsts: list[int],
-                  visible: list[np.ndarray]) -> list[tuple[tuple[int, int], tuple[int, int]]]:
-        """Upload the indirect draws of every column: per tile, the runs of its chunks in view, apart
-        for two-sided and one-sided (back faces culled) chunks. Per column ``((byte offset, draws)
-        two-sided, (byte offset, draws) one-sided)`` in the command buffer."""
+    def _commands(self, groups: list, tiles: np.ndarray, visible: list[np.ndarray]) -> list[tuple]:
+        """Upload the indirect draws of every camera of the pass: one per chunk in view of any of its
+        tiles, instanced over those tiles (the instances' attributes are the tiles' rows, copied per
+        (chunk, tile) pair), apart for two-sided and one-sided (back faces culled) chunks. Per camera
+        ``((byte offset, draws) two-sided, (byte offset, draws) one-sided)`` in the command buffer."""
         chunks = self._gl["chunks"]
-        parts, spans, total = [], [], 0
-        for (c, a, count, _), first in zip(columns, firsts):
-            seen = visible[c][a:a + count]
+        parts, pairs, spans, total, instances = [], [], [], 0, 0
+        for c, _, first, agent0, count in groups:
+            seen = visible[c][agent0:agent0 + count].T                    # (K, tiles of this camera)
             rgb = self.cameras[c].kind == "rgb"
-            column = []
+            spans_c = []
             for code in (1, 2):
-                padded = np.zeros((count, len(chunks) + 2), bool)
-                padded[:, 1:-1] = seen == code
-                starts = np.argwhere(padded[:, 1:-1] & ~padded[:, :-2])        # (tile, first chunk of a run)
-                ends = np.argwhere(padded[:, 1:-1] & ~padded[:, 2:])           # (tile, last chunk of a run)
-                face0, face1 = chunks[starts[:, 1], 0], chunks[ends[:, 1], 1]
-                rows = np.zeros((len(starts), 4 if rgb else 5), np.uint32)
-                rows[:, 0] = 3 * (face1 - face0)
-                rows[:, 1] = 1
-                rows[:, 2] = 3 * face0
-                rows[:, -1] = first + starts[:, 0]                             # base instance: the tile
+                chunk, tile = np.nonzero(seen == code)                    # sorted by chunk
+                used, per_chunk = np.unique(chunk, return_counts=True)
+                rows = np.zeros((len(used), 4 if rgb else 5), np.uint32)
+                rows[:, 0] = 3 * (chunks[used, 1] - chunks[used, 0])
+                rows[:, 1] = per_chunk
+                rows[:, 2] = 3 * chunks[used, 0]
+                rows[:, -1] = instances + np.cumsum(per_chunk) - per_chunk   # base instance: its first pair
+                pairs.append(tiles[first + tile])
+                instances += len(tile)
                 parts.append(rows.view(np.uint8).ravel())
-                column.append((total, len(rows)))
+                spans_c.append((total, len(rows)))
                 total += rows.nbytes
-            spans.append(tuple(column))
+            spans.append(tuple(spans_c))
         self._gl["commands"].upload(np.concatenate(parts))
+        self._gl["tiles"].upload(np.concatenate(pairs))
         return spans
 
-    def _draw_column(self, cam: CameraSpec, first: int, count: int, atlas_w: int, atlas_h: int,
+    def _draw_camera(self, cam: CameraSpec, first: int, count: int, atlas_w: int, atlas_h: int,
                      drone_rows: np.ndarray | None, commands: tuple | None) -> None:
-        """Draw the scene and the drones seen into one column's ``count`` tiles (first tile ``first``)."""
+        """Draw the scene and the drones seen into one camera's ``count`` tiles of the pass (first
+        tile ``first``): indirect draws of the chunks in view, or (no culling) everything instanced."""
         GL = _gl()
         s = self._gl
         program, u = s["programs"][cam.kind]
@@ -774,7 +782,9 @@ class BatchEglRenderer(Renderer):
         GL.glVertexAttrib3f(3, 0.0, 0.0, 0.0)   # the scene has no instance offset
         if s["faces"]:
             GL.glBindVertexArray(s["corner_vao"] if rgb else s["vao"])
-            if commands is not None:      # per tile, the runs of chunks in its view
+            GL.glBindBuffer(GL.GL_ARRAY_BUFFER, s["tiles"].buffer)
+            if commands is not None:      # per chunk in view, instanced over the tiles that see it
+                _tile_attributes(0, 64)
                 GL.glBindBuffer(GL.GL_DRAW_INDIRECT_BUFFER, s["commands"].buffer)
                 for (offset, draws), one_sided in zip(commands, (False, True)):
                     if one_sided:   # outward faces are counter-clockwise, clockwise on the flipped tiles
@@ -788,7 +798,6 @@ class BatchEglRenderer(Renderer):
                                                        draws, 0)
                 GL.glDisable(GL.GL_CULL_FACE)
             else:                         # every tile draws everything; instance k: tile first + k
-                GL.glBindBuffer(GL.GL_ARRAY_BUFFER, s["tiles"].buffer)
                 _tile_attributes(64 * first, 64)
                 if rgb:
                     GL.glDrawArraysInstanced(GL.GL_TRIANGLES, 0, 3 * s["faces"], count)
