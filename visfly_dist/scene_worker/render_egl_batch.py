@@ -1,21 +1,32 @@
-"""The ``egl`` backend: every camera of a render call drawn in one OpenGL pass per sensor kind.
+"""The ``egl`` backend: every camera of a render call drawn into one framebuffer atlas, one pass.
 
 Per renderer, once: the scene's triangles go into GPU buffers (depth/segmentation: one indexed
 vertex buffer of positions, object ids and moving-object indices; RGB: one vertex per triangle
-corner with its colour or texture UV and the face normal), textures into one texel buffer, the
-drone sphere into another. A moving obstacle's vertices carry its index; its translation at the
-call's time is a texel of a small buffer updated per call (nothing else is uploaded again).
+corner with its colour or texture UV and the face normal), the textures into one texel buffer, the
+drone sphere into another. The faces are reordered into *chunks* of ``CHUNK_FACES`` (Morton order;
+walls and each moving obstacle apart), each with a bounding sphere. A moving obstacle's vertices
+carry its index; its translation at the call's time is a texel of a small buffer updated per call
+(nothing else is uploaded again).
 
-Per call: every (drone, camera) pair is a *tile* of one framebuffer atlas. The camera poses go
-into a texel buffer (three rows of the world -> eye matrix and the tile's place per tile), then per
-camera of the rig ONE instanced draw of the scene (``gl_InstanceID`` = the tile) and one of the
-other drones (one instance per (tile, drone seen), culled to the view on the CPU; a camera's own
-drone is never drawn). The vertex shader projects with the tile's camera, then moves the clip
-coordinates into the tile's rectangle of the atlas, and four clip distances cut everything to the
-tile's frustum, so a triangle never spills into a neighbour. Tiles of one camera are stacked in
-columns, flipped so that image row 0 is the tile's bottom GL row: reading a column back with
-``glReadPixels`` gives the tiles' images in output order, straight into the output array (one
-read per column; RGB is read as ``(n, H, W, 3)`` and transposed once).
+Per call: every (drone, camera) pair is a *tile* of one atlas (tiles of a camera in columns, about
+square; a second pass only when the atlas is full). On the CPU, each tile's camera is tested
+against every chunk's bounding sphere; then per camera of the rig one ``glMultiDrawElementsIndirect``
+draws each chunk in view once, instanced over the tiles that see it (an instance's attributes are
+its tile's world -> eye rows and place in the atlas), and one instanced draw the other drones
+(one instance per (tile, drone in its view); a camera's own drone is never drawn). Chunks of
+closed solids (watertight, outward winding) are drawn with back faces culled wherever the camera's
+near rectangle is clear of their objects' spheres (so a ray can only meet a front face first);
+the others, and a camera inside or at a solid, draw both sides. The vertex shader projects with the
+tile's camera, then moves the clip coordinates into the tile's rectangle, and four clip distances
+cut everything to the tile's frustum, so a triangle never spills into a neighbour. Tiles are
+flipped (image row 0 is the tile's bottom GL row), so reading a column back with ``glReadPixels``
+gives its tiles' images in output order, straight into the output array (one read per column; RGB
+is read as ``(n, H, W, 3)`` and transposed once). Without ``glMultiDrawElementsIndirect`` (GL < 4.3,
+or ``VISFLY_EGL_CULL=0``) every tile draws the whole scene, instanced.
+
+On a CPU rasteriser (llvmpipe) the drones of a call are split between :attr:`BatchEglRenderer.lanes`
+contexts drawing at once on their own threads: llvmpipe shades vertices and sets triangles up on
+the thread that draws, so one context keeps about one core busy whatever its raster threads do.
 
 Outputs match the ray tracer: pixels are sampled at their centres (single sample), depth is the
 eye-space z computed per fragment in float32 (``far`` where nothing is hit; nothing nearer than
@@ -26,7 +37,8 @@ does) lit by the shared light of :mod:`render_base` (``AMBIENT + (1 - AMBIENT) |
 normal; a drone sphere's normal is exact per pixel) over the sky colour. Drones are icospheres
 within 1.8% of ``drone_radius``.
 
-The context is :func:`visfly_dist.scene_worker.render_egl.gl_context` (the device choice is there).
+The context is :func:`visfly_dist.scene_worker.render_egl.gl_context` (the device choice is there);
+nothing on this path imports pyrender or pyglet, or needs an X11 library.
 """
 
 from __future__ import annotations
