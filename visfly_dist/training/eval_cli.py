@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--connect", action="append", default=[], metavar="EP", help="Zenoh endpoint to join (repeatable)")
     parser.add_argument("--run-id", help="key namespace (default: random)")
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), help="renderer of local workers")
-    parser.add_argument("--device", default="cpu", help="torch device of the policy (default cpu)")
+    parser.add_argument("--device", default="auto", help="torch device of the policy (default auto: cuda when torch sees a GPU)")
     add_scene_root(parser)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="env setting passed to make_env (repeatable)")
     add_zenoh_config_argument(parser)
@@ -66,8 +66,11 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.training.evaluation import build_eval_env, evaluate, find_run_config, load_policy
     from visfly_dist.training.video import VideoRecorder
 
+    from visfly_dist.training.host_plan import check_device
+
     if args.episodes < 1:
         raise ConfigError(f"--episodes {args.episodes} must be >= 1")
+    device = check_device(args.device)
     checkpoint = Path(args.checkpoint)
     if not checkpoint.is_file():
         raise ConfigError(f"--checkpoint {str(checkpoint)!r} does not exist; pass a .zip (PPO) or .npz (BPTT/SHAC) "
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         if differentiable:
             model = load_actor(checkpoint, env.unwrapped, run_cfg.backbone if run_cfg is not None else "visfly-cnn")
         else:
-            model, env = load_policy(checkpoint, env, args.device)
+            model, env = load_policy(checkpoint, env, device)
         recorder = VideoRecorder(env.unwrapped) if args.video else None
         for k, deterministic in enumerate(modes):
             results.append(evaluate(model, env, args.episodes, deterministic=deterministic, seed=args.seed,

@@ -230,6 +230,7 @@ def eval_config(task: str, seed: int, run_cfg: TrainConfig | None, overrides: di
     cfg = run_cfg if run_cfg is not None and run_cfg.task == task else TrainConfig(task=task)
     cfg = cfg.resolved()
     cfg.seed = seed
+    cfg.worker_threads = None  # this host's cores, shared among the workers (the run's host may have had more)
     cfg.overrides = {**cfg.overrides, **task_class(task).config_class.evaluation_defaults, **overrides}
     for key, value in pool.items():
         if value is not None:
