@@ -246,3 +246,19 @@ def test_an_egl_worker_names_its_gl_device_in_the_ready_line_and_health(scene_ro
         assert ok and reply["backend"] == "egl" and reply["gl_device"] == device
     finally:
         stop_process(proc)
+
+
+def test_chunks_cover_every_face_once_and_keep_small_objects_whole():
+    from visfly_dist.scene_worker.render_egl_batch import CHUNK_FACES, _Geometry
+
+    scene = generate_scene("garage-stones", seed=0)
+    geometry = _Geometry(scene, rgb=True)
+    starts, ends = geometry.chunks[:, 0].astype(int), geometry.chunks[:, 1].astype(int)
+    assert starts[0] == 0 and (starts[1:] == ends[:-1]).all() and ends[-1] == scene.num_triangles
+    assert ((ends - starts) <= CHUNK_FACES).all() and (ends > starts).all()
+    assert sorted(geometry.order.tolist()) == list(range(scene.num_triangles))
+    assert len(geometry.corners) == 3 * scene.num_triangles
+    vertices = geometry.indexed[:, :3][geometry.indices.reshape(-1, 3)]        # the chunk spheres hold their faces
+    for start, end, *centre_radius in geometry.chunks[:, :6]:
+        centre, radius = np.array(centre_radius[:3]), centre_radius[3]
+        assert (np.linalg.norm(vertices[int(start):int(end)] - centre, axis=2) <= radius + 1e-4).all()

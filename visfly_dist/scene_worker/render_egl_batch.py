@@ -236,9 +236,9 @@ class _Geometry:
     """The scene's triangles reordered into chunks for culling, as arrays to upload.
 
     Faces are grouped by (moving object or static, closed solid or not, larger than ``BIG_FACE_M``
-    or not); static small faces are in Morton order of their centroids. Every ``CHUNK_FACES`` faces
-    of a group are a chunk, with the bounding sphere of its faces and the enclosing sphere of its
-    objects (a moving object's in its local frame). A *closed* object is watertight with outward
+    or not); static small faces are chunked object by object (:func:`_object_chunks`), the others
+    every ``CHUNK_FACES`` faces. A chunk has the bounding sphere of its faces and the enclosing
+    sphere of its objects (a moving object's in its local frame). A *closed* object is watertight with outward
     winding: seen from outside it, only its front faces can show, so its back faces may be culled.
 
     ``indexed`` rows are ``position, id, mover`` per vertex and ``indices`` 3 per face; ``corners``
@@ -269,26 +269,26 @@ class _Geometry:
         face_mover = mover_of[face_object]
         face_closed = closed[face_object]
         big = np.linalg.norm(high - low, axis=1) > 2 * BIG_FACE_M
-        groups = []
+        parts = []
         for is_closed in (False, True):
             static = (face_mover < 0) & (face_closed == is_closed)
-            groups.append(np.flatnonzero(static & big))
+            parts += _split(np.flatnonzero(static & big))
             small = np.flatnonzero(static & ~big)
             if len(small):
-                groups.append(small[np.argsort(_morton(0.5 * (low[small] + high[small])), kind="stable")])
-        groups += [np.flatnonzero(face_mover == k) for k in range(len(moving))]
+                parts += _object_chunks(small, face_object[small], 0.5 * (low[small] + high[small]))
+        for k in range(len(moving)):
+            parts += _split(np.flatnonzero(face_mover == k))
         order, chunks = [], []
         start = 0
-        for group in groups:
-            for first in range(0, len(group), CHUNK_FACES):
-                part = group[first:first + CHUNK_FACES]
-                centre, radius = _sphere(corners[part].reshape(-1, 3))
-                owners = np.unique(face_object[part])
-                solid = _enclosing(spheres[owners])
-                chunks.append((start, start + len(part), *centre, radius, float(face_mover[part[0]]),
-                               float(face_closed[part[0]]), *solid))
-                order.append(part)
-                start += len(part)
+        for part in parts:
+            if not len(part):
+                continue
+            centre, radius = _sphere(corners[part].reshape(-1, 3))
+            solid = _enclosing(spheres[np.unique(face_object[part])])
+            chunks.append((start, start + len(part), *centre, radius, float(face_mover[part[0]]),
+                           float(face_closed[part[0]]), *solid))
+            order.append(part)
+            start += len(part)
         self.order = np.concatenate(order) if order else np.zeros(0, np.int64)
         self.indices = np.ascontiguousarray(faces[self.order], np.uint32).ravel()
         self.chunks = np.array(chunks, np.float64).reshape(-1, 12)
@@ -296,6 +296,36 @@ class _Geometry:
         if rgb:
             self.corners, self.texels, self.texture_info = _corner_arrays(objects, movers, meshes)
             self.corners = np.ascontiguousarray(self.corners.reshape(-1, 3, 14)[self.order].reshape(-1, 14))
+
+
+def _split(faces: np.ndarray) -> list[np.ndarray]:
+    """``faces`` in chunks of ``CHUNK_FACES``."""
+    return [faces[first:first + CHUNK_FACES] for first in range(0, len(faces), CHUNK_FACES)]
+
+
+def _object_chunks(faces: np.ndarray, owner: np.ndarray, centroids: np.ndarray) -> list[np.ndarray]:
+    """Chunks of ``faces`` that keep objects together (tight bounding spheres): objects in Morton order
+    of their centres, each object's faces in Morton order; an object of half a chunk or more gets
+    chunks of its own, smaller ones share chunks with their neighbours in that order."""
+    code = _morton(centroids)
+    objects, inverse = np.unique(owner, return_inverse=True)
+    centres = np.stack([np.bincount(inverse, weights=centroids[:, k]) for k in range(3)], axis=1)
+    centres /= np.bincount(inverse)[:, None]
+    rank = np.argsort(np.argsort(_morton(centres), kind="stable"), kind="stable")
+    ordered = faces[np.lexsort((code, rank[inverse]))]
+    bounds = np.flatnonzero(np.diff(rank[inverse][np.lexsort((code, rank[inverse]))])) + 1
+    out, current = [], []
+    for group in np.split(ordered, bounds):
+        if len(group) >= CHUNK_FACES // 2:
+            out += _split(group)
+        else:
+            if sum(len(g) for g in current) + len(group) > CHUNK_FACES:
+                out.append(np.concatenate(current))
+                current = []
+            current.append(group)
+    if current:
+        out.append(np.concatenate(current))
+    return out
 
 
 def _sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
