@@ -24,9 +24,9 @@ gives its tiles' images in output order, straight into the output array (one rea
 is read as ``(n, H, W, 3)`` and transposed once). Without ``glMultiDrawElementsIndirect`` (GL < 4.3,
 or ``VISFLY_EGL_CULL=0``) every tile draws the whole scene, instanced.
 
-On a CPU rasteriser (llvmpipe) the drones of a call are split between :attr:`BatchEglRenderer.lanes`
-contexts drawing at once on their own threads: llvmpipe shades vertices and sets triangles up on
-the thread that draws, so one context keeps about one core busy whatever its raster threads do.
+Optionally (:attr:`BatchEglRenderer.lanes`, default 1) the drones of a call are split between
+several contexts drawing at once on their own threads: llvmpipe shades vertices and sets triangles
+up on the thread that draws, so one context keeps about one core busy whatever its raster threads do.
 
 Outputs match the ray tracer: pixels are sampled at their centres (single sample), depth is the
 eye-space z computed per fragment in float32 (``far`` where nothing is hit; nothing nearer than
@@ -415,17 +415,18 @@ class BatchEglRenderer(Renderer):
 
     @property
     def lanes(self) -> int:
-        """Contexts drawing one call's cameras at once, each on its own thread: 1 on a GPU; on a CPU
-        rasteriser (llvmpipe) the CPUs this process may use, at most 4 (``VISFLY_EGL_LANES`` or the
-        ``lanes`` argument override): llvmpipe shades vertices and sets triangles up on the calling
-        thread, so one context keeps one core busy."""
+        """Contexts drawing one call's cameras at once, each on its own thread (``VISFLY_EGL_LANES``
+        or the ``lanes`` argument; default 1). llvmpipe shades vertices and sets triangles up on the
+        thread that draws, so on an idle many-core host more lanes may help; on the shared 2-core
+        machine of BENCHMARKS.md two lanes cost 30% more CPU and were slower, so 1 is the default."""
         if self._lanes_asked is not None:
             return self._lanes_asked
-        if os.environ.get("VISFLY_EGL_LANES", "").strip():
-            return max(1, int(os.environ["VISFLY_EGL_LANES"]))
-        from visfly_dist.scene_worker.render_egl import gl_device
-
-        return 1 if gl_device().is_gpu else max(1, min(4, len(os.sched_getaffinity(0))))
+        value = os.environ.get("VISFLY_EGL_LANES", "").strip()
+        if value:
+            if not value.isdigit() or int(value) < 1:
+                raise ConfigError(f"VISFLY_EGL_LANES={value!r} must be an int >= 1")
+            return int(value)
+        return 1
 
     def _move(self, translations: np.ndarray) -> None:
         self._translations = np.asarray(translations, np.float64)
