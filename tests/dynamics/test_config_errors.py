@@ -16,7 +16,7 @@ from visfly_dist.errors import ConfigError
     (dict(integrator="rk2"), r"unknown integrator='rk2'"),
     (dict(sim_dt=0.003, ctrl_dt=0.02), r"sim_dt=0.003 must divide ctrl_dt=0.02"),
     (dict(sim_dt=0.0), r"must be > 0"),
-    (dict(action_delay_s=0.05), r"action_delay_s=0.05 must be a non-negative multiple of ctrl_dt=0.02"),
+    (dict(action_delay_s=0.05, ctrl_dt=0.02), r"action_delay_s=0.05 must be a non-negative multiple of ctrl_dt=0.02"),
     (dict(wind=(1.0, 2.0)), r"wind of shape \(2,\)"),
     (dict(wind=(1.0, float("nan"), 0.0)), r"wind must be finite"),
 ])
@@ -76,6 +76,10 @@ def test_airframe_files_are_validated(tmp_path):
         load_airframe(tmp_path / "negative.json")
     with pytest.raises(ConfigError, match=r"cannot read airframe file"):
         load_airframe(tmp_path / "absent.json")
+    # the collision radius has one home, the env's drone_radius: an airframe file naming one is refused
+    (tmp_path / "radius.json").write_text(json.dumps(dict(data, radius=0.25)))
+    with pytest.raises(ConfigError, match=r"'radius' is not an airframe field.*drone_radius=0.25"):
+        load_airframe(tmp_path / "radius.json")
 
 
 def test_sampler_settings_are_validated():

@@ -143,7 +143,7 @@ def test_wind_drags_along_the_air_relative_velocity():
 
 def test_action_delay_shifts_the_response_by_whole_control_steps():
     plain = _quad("ctbr")
-    delayed = _quad("ctbr", action_delay_s=0.06)
+    delayed = _quad("ctbr", action_delay_s=3 * plain.config.ctrl_dt)
     assert delayed.initial_state().action_queue.shape == (1, 3, 4)
     step_cmd = torch.tensor([[0.0, 0.5, 0.0, 0.0]], dtype=F64)
     hover = plain.hover_action()[None]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import dataclasses
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Optional, Sequence
 
 import torch
 
@@ -22,6 +22,9 @@ from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
 
 STATE_NOISE_KEY = "state"
+
+_DYNAMICS_DEFAULTS = {f.name: f.default for f in fields(DynamicsConfig)}
+"""Defaults of the dynamics settings the env shares, read from ``DynamicsConfig``: set there only."""
 
 
 def _default_pool() -> PoolConfig:
@@ -43,6 +46,14 @@ class EnvConfig:
         ctrl_dt: control period (one env step), seconds; a multiple of ``sim_dt``.
         integrator: ``rk4`` or ``euler``.
         action_delay_s: command latency (a FIFO of actions), seconds.
+        motor_lag: first-order lag on rotor speeds (False: rotors reach their command at once).
+        wind: constant world-frame wind, m/s: None, ``(x, y, z)`` for every agent, or one triple per agent.
+        ground: apply the ground reaction at ``z = 0``.
+        compile: run the control step through ``torch.compile``.
+
+    The dynamics settings (``controller`` to ``compile``) take their defaults from
+    :class:`~visfly_dist.dynamics.config.DynamicsConfig` (e.g. ``ctrl_dt`` 0.03 s, 33.3 Hz) and reach
+    it whole through :meth:`dynamics_config`: every field of this class named as one of its fields.
         airframe: airframe name or JSON path for ``load_airframe``.
         cameras: the sensors mounted on every drone (may be empty).
         noise: per sensor (a camera name or ``"state"``) the noise models applied in order.
@@ -65,11 +76,15 @@ class EnvConfig:
     agents_per_scene: int = 1
     swap_every_resets: int = 0
     shuffle_scenes: bool = True
-    controller: str = "ctbr"
-    sim_dt: float = 0.005
-    ctrl_dt: float = 0.03
-    integrator: str = "rk4"
-    action_delay_s: float = 0.0
+    controller: str = _DYNAMICS_DEFAULTS["controller"]
+    sim_dt: float = _DYNAMICS_DEFAULTS["sim_dt"]
+    ctrl_dt: float = _DYNAMICS_DEFAULTS["ctrl_dt"]
+    integrator: str = _DYNAMICS_DEFAULTS["integrator"]
+    action_delay_s: float = _DYNAMICS_DEFAULTS["action_delay_s"]
+    motor_lag: bool = _DYNAMICS_DEFAULTS["motor_lag"]
+    wind: Optional[tuple] = _DYNAMICS_DEFAULTS["wind"]
+    ground: bool = _DYNAMICS_DEFAULTS["ground"]
+    compile: bool = _DYNAMICS_DEFAULTS["compile"]
     airframe: str = "visfly"
     cameras: tuple[CameraSpec, ...] = ()
     noise: Mapping[str, Sequence[NoiseSpec]] = field(default_factory=dict)
@@ -88,6 +103,8 @@ class EnvConfig:
         self.scenes = tuple(self.scenes)
         self.cameras = tuple(self.cameras)
         self.noise = {k: tuple(v) for k, v in dict(self.noise).items()}
+        if isinstance(self.wind, list):  # e.g. from JSON (``--set wind=[1,0,0]``)
+            self.wind = tuple(tuple(w) if isinstance(w, list) else w for w in self.wind)
 
     @property
     def num_scenes(self) -> int:
@@ -137,6 +154,14 @@ class EnvConfig:
             value = getattr(self, name)
             if not _is_number(value) or not 0 <= value <= 1:
                 out.append(f"{name}={value!r} must be a number of seconds in [0, 1]")
+        for name in ("motor_lag", "ground", "compile"):
+            if not isinstance(getattr(self, name), bool):
+                out.append(f"{name}={getattr(self, name)!r} must be True or False")
+        if self.wind is not None:
+            try:
+                torch.as_tensor(self.wind, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                out.append(f"wind={self.wind!r} must be None, (x, y, z) m/s, or one such triple per agent")
         if not out:
             try:
                 self.dynamics_config()
@@ -178,9 +203,15 @@ class EnvConfig:
         return self
 
     def dynamics_config(self) -> DynamicsConfig:
-        """The dynamics settings derived from this config (raises ConfigError when invalid)."""
-        return DynamicsConfig(controller=self.controller, sim_dt=self.sim_dt, ctrl_dt=self.ctrl_dt,
-                              integrator=self.integrator, action_delay_s=self.action_delay_s)
+        """The dynamics settings of this config: every ``DynamicsConfig`` field this class also has,
+        by name (raises ConfigError when invalid)."""
+        return DynamicsConfig(**{name: getattr(self, name) for name in self.dynamics_field_names()})
+
+    @classmethod
+    def dynamics_field_names(cls) -> tuple[str, ...]:
+        """The fields of this config that are ``DynamicsConfig`` settings (passed on by ``dynamics_config``)."""
+        own = set(cls.field_names())
+        return tuple(name for name in _DYNAMICS_DEFAULTS if name in own)
 
     def scene_set(self, num_scenes: int | None = None) -> SceneSetConfig:
         """The aggregator's scene-set config derived from this one."""
