@@ -76,7 +76,6 @@ class Airframe:
         air_density: kg/m^3; the quadratic drag coefficient is ``0.5 * air_density * drag_area``.
         max_body_rate: CTBR body-rate range, rad/s.
         max_collective_accel: CTBR collective (mass-normalised) thrust range, m/s^2.
-        radius: collision radius, m.
         gains: controller gains.
         description: one line about where the numbers come from.
     """
@@ -94,7 +93,6 @@ class Airframe:
     air_density: Number
     max_body_rate: float
     max_collective_accel: float
-    radius: float
     gains: ControllerGains
     description: str = ""
 
@@ -117,7 +115,7 @@ class Airframe:
                 out.append(f"{name}={_show(value)} must have {n} entries")
 
         for name in ("mass", "arm_length", "motor_time_constant", "max_body_rate",
-                     "max_collective_accel", "radius", "inertia"):
+                     "max_collective_accel", "inertia"):
             positive(name, getattr(self, name))
         length("inertia", self.inertia, 3)
         length("drag_linear", self.drag_linear, 3)
@@ -185,6 +183,10 @@ def load_airframe(name_or_path: str | Path) -> Airframe:
 def airframe_from_dict(data: dict[str, Any], source: str = "<dict>") -> Airframe:
     """Build an ``Airframe`` from its JSON form (see the shipped files for the layout)."""
     data = dict(data)
+    if "radius" in data:
+        raise ConfigError(f"airframe {source!r}: 'radius' is not an airframe field; the collision radius is "
+                          f"the env setting drone_radius (EnvConfig, default 0.1 m): remove it from the file "
+                          f"and pass drone_radius={data['radius']!r} to the env instead")
     gains = data.pop("gains", None)
     if not isinstance(gains, dict):
         raise ConfigError(f"airframe {source!r} needs a 'gains' object with {_names(ControllerGains)}")
