@@ -21,6 +21,7 @@ class EchoServer:
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.address = self.listener.getsockname()
         self.threads: list[threading.Thread] = []
+        self.received = 0  # bytes received so far, over all connections
         self.acceptor = threading.Thread(target=self._accept, daemon=True)
         self.acceptor.start()
 
@@ -34,10 +35,10 @@ class EchoServer:
             t.start()
             self.threads.append(t)
 
-    @staticmethod
-    def _echo(conn: socket.socket) -> None:
+    def _echo(self, conn: socket.socket) -> None:
         with conn:
             while data := conn.recv(1 << 16):
+                self.received += len(data)
                 conn.sendall(data)
             conn.shutdown(socket.SHUT_WR)
 
@@ -86,9 +87,9 @@ def test_round_trip_gains_the_delay(echo):
     direct = median_rtt(echo.address[1])
     with DelayProxy(echo.address, delay_ms=40) as proxy:
         proxied = median_rtt(proxy.port)
-    # Each way waits until arrival + 20 ms, so the round trip can never be shorter than 40 ms;
-    # the upper bound leaves room for a loaded, shared machine.
-    assert 0.040 <= proxied < 0.040 + direct + 0.060, (direct, proxied)
+    # Each way waits until arrival + 20 ms, so the round trip can never be shorter than 40 ms (how
+    # little longer it is on a given machine is for `visfly-dist bench`, not a unit test).
+    assert proxied >= 0.040, (direct, proxied)
 
 
 def test_zero_delay_forwards_bytes_intact_both_ways(echo):
@@ -104,25 +105,24 @@ def test_zero_delay_forwards_bytes_intact_both_ways(echo):
 
 
 def test_delays_are_pipelined_not_serialised(echo):
-    """Many chunks in flight each wait the delay once: a burst of 40 writes takes about one round
-    trip, where serialised delays would take 40 round trips (4 s)."""
-    delay_ms, writes = 100, 40
-    payload = os.urandom(writes * 50_000)
+    """Many chunks in flight each wait the delay once, from their own arrival: a burst of 40 writes has
+    mostly reached the server by the time the first chunk's echo is back (one round trip). Serialised
+    delays would have let through one chunk per one-way delay: 2 of the 40 by then."""
+    delay_ms, writes, size = 1000, 40, 50_000
+    payload = os.urandom(writes * size)
     with DelayProxy(echo.address, delay_ms=delay_ms) as proxy, connect(proxy.port) as s:
-        t0 = time.perf_counter()
-
         def send() -> None:
             for i in range(writes):  # separate writes, so the proxy sees many chunks
-                s.sendall(payload[i * 50_000:(i + 1) * 50_000])
-                time.sleep(0.001)
+                s.sendall(payload[i * size:(i + 1) * size])
 
         sender = threading.Thread(target=send)
         sender.start()
-        got = recv_exactly(s, len(payload))
-        elapsed = time.perf_counter() - t0
+        first = recv_exactly(s, 1)
+        at_first_echo = echo.received  # bytes the server had when the first echo came back
+        got = first + recv_exactly(s, len(payload) - 1)
         sender.join()
     assert got == payload
-    assert delay_ms / 1e3 <= elapsed < delay_ms / 1e3 + 1.0, elapsed
+    assert at_first_echo > len(payload) // 2, (at_first_echo, len(payload))
 
 
 def test_close_ends_connections_and_threads(echo):

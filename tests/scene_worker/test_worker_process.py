@@ -22,29 +22,30 @@ RUN = f"proc{os.getpid()}"
 HEAVY = "gen:garage-stones?seed=11&density=0.8"   # about 1,000 stones: seconds of generation and BVH builds
 
 
-def test_health_and_other_scenes_answer_within_1s_while_a_heavy_scene_loads(worker_factory):
+def test_health_and_other_scenes_answer_while_a_heavy_scene_loads(worker_factory):
+    """While one scene loads, the worker keeps answering: health (reporting the load), steps of another
+    scene, and a typed refusal for the loading scene; then the load's own reply arrives. (How fast it
+    answers is ``visfly-dist bench``'s business, not a unit test's.)"""
     proc = worker_factory(RUN)
     poses = np.array([[2.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]], np.float32)
     with client_session(proc.endpoint) as session:
         assert call(session, proc.rpc_key, LoadScene("light", "gen:empty", (CameraSpec(),)).to_message())[0]
         pending = session.get(proc.rpc_key, payload=encode(LoadScene("heavy", HEAVY, (CameraSpec(),)).to_message()),
                               timeout=120.0, consolidation=zenoh.ConsolidationMode.NONE)
-        latencies, saw_loading = [], False
-        while not saw_loading or len(latencies) < 5:
-            t0 = time.perf_counter()
-            ok, health = call(session, proc.rpc_key, Health().to_message(), timeout=5.0)
-            latencies.append(time.perf_counter() - t0)
+        rounds_while_loading = 0
+        while rounds_while_loading < 5:
+            ok, health = call(session, proc.rpc_key, Health().to_message(), timeout=60.0)
             assert ok, health
             if health["loading"] != ["heavy"]:
                 break  # the load is over
-            saw_loading = True
             ok, step = call(session, proc.rpc_key, StepRequest((ScenePoses("light", poses),)).to_message())
             assert ok and step["images"]["depth"].shape == (1, 1, 64, 64)
             ok, err = call(session, proc.rpc_key, StepRequest((ScenePoses("heavy", poses),)).to_message())
             assert not ok and err["code"] == "scene_loading", err
+            rounds_while_loading += 1
             time.sleep(0.05)
-        assert saw_loading, "the heavy load ended before a health check saw it: choose a heavier scene"
-        assert max(latencies) < 1.0, latencies
+        assert rounds_while_loading >= 1, ("no health answer came while the heavy scene loaded: the worker blocks "
+                                           "on loads, or the load is too quick (choose a heavier scene)")
         (reply,) = list(pending)
         loaded = decode(reply.ok.payload.to_bytes())
         assert loaded["type"] == "scene_loaded" and loaded["metadata"]["num_stones"] == round(18 * 14 * 5 * 0.8)
