@@ -353,7 +353,8 @@ def _is_closed(mesh: trimesh.Trimesh) -> bool:
         return False
 
 
-def _corner_arrays(objects: list, movers: dict, meshes: list) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, int]]]:
+def _corner_arrays(objects: list, movers: dict,
+                   meshes: list) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, int]]]:
     """Per triangle corner: ``position 3, id, mover, uv 2, colour 3, normal 3, texture`` (float32, 14),
     the texels of every texture ``(k, 4)`` uint8 and ``(first texel, width, height)`` per texture."""
     from visfly_dist.scene_worker.shading import SurfaceShader
@@ -575,7 +576,8 @@ class BatchEglRenderer(Renderer):
 
     # -- rendering -----------------------------------------------------------------------------
 
-    def render_into(self, poses: np.ndarray, show_drones: bool, time: float, out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def render_into(self, poses: np.ndarray, show_drones: bool, time: float,
+                    out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """:meth:`render` with the images read back straight into ``out[camera.name]`` ``(n, C, H, W)``
         (e.g. rows of a shared-memory segment); returns ``out``."""
         poses = self._checked_poses(poses, show_drones)
@@ -748,8 +750,8 @@ class BatchEglRenderer(Renderer):
             rows = drone_rows[c]
             if rows is not None:   # centre, id, then the rows of the seeing agent's tile
                 rows = rows[(rows[:, 4] >= agent0) & (rows[:, 4] < agent0 + count)]
-                rows = np.concatenate([rows[:, :4], tiles[rows[:, 4].astype(np.int64) + first - agent0].reshape(-1, 16)],
-                                      axis=1)
+                seer = rows[:, 4].astype(np.int64) + first - agent0
+                rows = np.concatenate([rows[:, :4], tiles[seer].reshape(-1, 16)], axis=1)
             self._draw_camera(cam, first, count, atlas_w, atlas_h, rows, None if draws is None else draws[k])
         GL.glDisable(GL.GL_SCISSOR_TEST)
         for k in range(4):
