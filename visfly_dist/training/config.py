@@ -144,6 +144,8 @@ class TrainConfig:
             ``lr``, ``gamma``, ``horizon``, and SHAC's critic ``gae_lambda``, ``n_epochs``, ``batch_size``);
             ``None``: the task's (``DEFAULT_ALGOS``, else ``ppo``).
         horizon: BPTT/SHAC window length, steps (the graph is cut between windows; ``None``: 32 or the task's).
+        recurrent: an LSTM between the extractor and the heads (sb3-contrib ``RecurrentPPO``; see
+            :mod:`visfly_dist.training.ppo`); PPO only.
     """
 
     task: str
@@ -178,6 +180,7 @@ class TrainConfig:
     overrides: dict[str, Any] = field(default_factory=dict)
     algo: str | None = None
     horizon: int | None = None
+    recurrent: bool = False
     host_plan: dict[str, Any] = field(default_factory=dict)
 
     def resolved(self) -> "TrainConfig":
@@ -228,6 +231,9 @@ class TrainConfig:
             out.append(f"algo={self.algo!r} must be one of {ALGOS}")
         if not isinstance(self.horizon, int) or isinstance(self.horizon, bool) or self.horizon < 1:
             out.append(f"horizon={self.horizon!r} must be an int >= 1")
+        if self.recurrent and self.algo in ("bptt", "shac"):
+            out.append(f"recurrent=True is for PPO; {self.algo} differentiates through the dynamics over its horizon "
+                       "and has no recurrent actor: drop --recurrent or use --algo sb3-ppo")
         if self.backbone not in BACKBONES:
             out.append(f"backbone={self.backbone!r} must be one of {BACKBONES}")
         return out + self._scene_problems()

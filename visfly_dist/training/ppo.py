@@ -11,6 +11,16 @@ What a run writes in its folder (``TrainConfig.out``):
   (also written when the run is interrupted with Ctrl-C); each with ``*.norm.npz`` when
   observations are normalised (see :mod:`visfly_dist.training.checkpoints`).
 
+Recurrent policies (``--recurrent``, ``TrainConfig.recurrent``): sb3-contrib's ``RecurrentPPO`` with
+``MultiInputLstmPolicy``: the same extractor, then an LSTM (``RECURRENT_HIDDEN`` units; the actor and
+the critic each have their own), then the 64-64 heads. Its hidden state is reset where an episode
+starts and carried across rollouts; the update backpropagates through time over each env's rollout
+(``n_steps`` long), cut at episode starts (truncated BPTT). It trains with SB3's loop (no update
+threads, no ``--overlap``); with ``--algo ppo`` (the tensor trainer, which has no recurrent core) a
+line says the run uses that loop instead. ``bptt``/``shac`` refuse it (ConfigError): they differentiate
+through the dynamics and have no recurrent actor. Checkpoints are ``RecurrentPPO`` zips, which
+``visfly-dist eval`` and ``visfly-dist export`` recognise.
+
 The same pieces serve your own scripts: ``build_env(cfg)`` gives the wrapped VecEnv and
 ``build_model(cfg, env)`` the PPO model; or skip both and use ``make_env`` with
 :func:`visfly_dist.training.extractors.visfly_policy_kwargs` directly.
@@ -103,6 +113,35 @@ def build_env(cfg: TrainConfig) -> VecEnv:
     return env
 
 
+RECURRENT_HIDDEN = 128
+"""LSTM units of a ``--recurrent`` policy's actor (and, separately, its critic)."""
+
+
+def build_recurrent_model(cfg: TrainConfig, env: VecEnv) -> Any:
+    """sb3-contrib ``RecurrentPPO`` (``MultiInputLstmPolicy``): the extractor, an LSTM, the 64-64 heads."""
+    from sb3_contrib import RecurrentPPO
+
+    model = RecurrentPPO(
+        "MultiInputLstmPolicy",
+        env,
+        learning_rate=cfg.lr,
+        n_steps=cfg.n_steps,
+        batch_size=cfg.batch_size,
+        n_epochs=cfg.n_epochs,
+        gamma=cfg.gamma,
+        gae_lambda=cfg.gae_lambda,
+        ent_coef=cfg.ent_coef,
+        clip_range=cfg.clip_range,
+        policy_kwargs={**visfly_policy_kwargs(cfg.backbone), "log_std_init": cfg.log_std_init,
+                       "lstm_hidden_size": RECURRENT_HIDDEN},
+        seed=cfg.seed,
+        device=cfg.device,
+        verbose=0,
+    )
+    model.set_logger(configure(str(cfg.out), ["tensorboard", "csv"]))
+    return model
+
+
 def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
 
@@ -110,7 +149,10 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     hyperparameters for :class:`TensorPPO` (and saves the ``.zip``). For ``"sb3-ppo"`` it is
     :class:`UpdateThreadsPPO` (plain PPO whose update uses every core while the workers are idle),
     or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
+    With ``cfg.recurrent``: :func:`build_recurrent_model`.
     """
+    if cfg.recurrent:
+        return build_recurrent_model(cfg, env)
     if cfg.algo == "ppo":
         cls, extra = PPO, {}
     elif cfg.overlap:
@@ -153,9 +195,16 @@ def train(cfg: TrainConfig) -> TrainResult:
         ConfigError: a bad setting, raised before any worker starts.
     """
     cfg = replace(cfg, algo=cfg.algo if cfg.algo in PPO_ALGOS else default_ppo(cfg.task))
+    if cfg.recurrent and cfg.algo == "ppo":
+        print("--recurrent: the tensor trainer (--algo ppo) has no recurrent core; training with sb3-contrib's "
+              "RecurrentPPO in SB3's loop (sb3-ppo)", flush=True)
+        cfg = replace(cfg, algo="sb3-ppo")
     cfg = apply_host_plan(cfg, log=lambda line: print(line, flush=True) if cfg.progress else None).resolved().validate()
     torch.set_num_threads(cfg.threads)
     keep_freed_memory()
+    if cfg.recurrent and cfg.overlap:
+        print("--recurrent: RecurrentPPO collects and learns in turn; --overlap does not apply", flush=True)
+        cfg = replace(cfg, overlap=False)
     run_dir = Path(cfg.out)
     tensor = cfg.algo == "ppo"
     env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)) if tensor else build_env(cfg)

@@ -77,6 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "device), sb3-ppo (stable-baselines3's loop), or bptt / shac through the dynamics "
                         "(default: the task's, see visfly_dist.training.config.DEFAULT_ALGOS)")
     parser.add_argument("--horizon", type=int, help="bptt/shac window, steps (default 32; per task)")
+    parser.add_argument("--recurrent", action="store_true",
+                        help="an LSTM between the extractor and the heads (sb3-contrib RecurrentPPO, SB3's loop; "
+                             "with --algo ppo too, which says so); not with bptt/shac")
     parser.set_defaults(func=run)
 
 
@@ -124,6 +127,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         overrides=with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config),
         algo=args.algo,
         horizon=args.horizon,
+        recurrent=args.recurrent,
     )
 
 
