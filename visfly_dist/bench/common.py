@@ -1,4 +1,5 @@
-"""Helpers shared by the benchmarks: timing a callable, and describing the machine a run was on.
+"""Helpers shared by the benchmarks: timing a callable, describing the machine a run was on, clear
+drone poses in a scene, and the stages a step is split into.
 
 Figures from these machines are noisy (they are shared), so a timing keeps every repetition and
 reports the median; the load average before and after a run says how busy the machine was.
@@ -18,7 +19,35 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import numpy as np
+
+from visfly_dist.errors import ConfigError
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
+STAGES = ("physics", "transport", "render", "queries", "other")
+"""The stages a measured env step is split into (the step bench's rows and its report)."""
+DRONE_RADIUS = 0.1
+CLEARANCE = 0.3
+
+
+def bench_poses(scene: Any, n: int, seed: int = 0) -> np.ndarray:
+    """``n`` poses ``(n, 7)`` at least ``CLEARANCE`` from obstacles inside the scene's bounds, random yaw."""
+    from visfly_dist.scene_worker.queries import ObstacleQueries
+
+    rng = np.random.default_rng(seed)
+    queries = ObstacleQueries(scene, DRONE_RADIUS)
+    low, high = scene.bounds[0] + 0.3, scene.bounds[1] - 0.3
+    found = np.zeros((0, 3))
+    for _ in range(100):
+        candidates = rng.uniform(low, high, size=(4 * n, 3))
+        found = np.concatenate([found, candidates[queries.distance(candidates) > CLEARANCE]])
+        if len(found) >= n:
+            break
+    if len(found) < n:
+        raise ConfigError(f"found only {len(found)} clear poses of {n} in scene {scene.name!r}; pick another scene")
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    quat = np.stack([np.cos(yaw / 2), np.zeros(n), np.zeros(n), np.sin(yaw / 2)], axis=1)
+    return np.concatenate([found[:n], quat], axis=1)
 
 
 @dataclass(frozen=True)

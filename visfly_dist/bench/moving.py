@@ -31,7 +31,7 @@ INSTANT_S = 0.25   # seconds between two instants
 def moving_rows(moving: int, agents: int, reps: int, seed: int = 0, res: int = 64, search_radius: float = 5.0,
                 log: Callable[[str], None] = print) -> list[dict[str, Any]]:
     """Measure the moving-obstacle overhead (module docstring); ``[]`` when raycast is unavailable."""
-    from visfly_dist.bench.render import DRONE_RADIUS, bench_poses
+    from visfly_dist.bench.common import DRONE_RADIUS, bench_poses
     from visfly_dist.scene_worker.queries import ObstacleQueries
     from visfly_dist.scene_worker.render_base import available_backends, make_renderer
     from visfly_dist.scenes import generate_scene

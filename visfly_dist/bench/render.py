@@ -36,34 +36,13 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from visfly_dist.bench.common import CLEARANCE, DRONE_RADIUS, bench_poses
 from visfly_dist.errors import ConfigError, RemoteError, TransportTimeoutError
 from visfly_dist.protocol.cameras import SENSOR_KINDS, CameraSpec
 
-DRONE_RADIUS = 0.1
-CLEARANCE = 0.3
 WORKER_READY_S = 120.0
 WORKER_CALL_S = 600.0
 QUICK_AGENTS = 20
-
-
-def bench_poses(scene: Any, n: int, seed: int = 0) -> np.ndarray:
-    """``n`` poses ``(n, 7)`` at least ``CLEARANCE`` from obstacles inside the scene's bounds, random yaw."""
-    from visfly_dist.scene_worker.queries import ObstacleQueries
-
-    rng = np.random.default_rng(seed)
-    queries = ObstacleQueries(scene, DRONE_RADIUS)
-    low, high = scene.bounds[0] + 0.3, scene.bounds[1] - 0.3
-    found = np.zeros((0, 3))
-    for _ in range(100):
-        candidates = rng.uniform(low, high, size=(4 * n, 3))
-        found = np.concatenate([found, candidates[queries.distance(candidates) > CLEARANCE]])
-        if len(found) >= n:
-            break
-    if len(found) < n:
-        raise ConfigError(f"found only {len(found)} clear poses of {n} in scene {scene.name!r}; pick another scene")
-    yaw = rng.uniform(-np.pi, np.pi, n)
-    quat = np.stack([np.cos(yaw / 2), np.zeros(n), np.zeros(n), np.sin(yaw / 2)], axis=1)
-    return np.concatenate([found[:n], quat], axis=1)
 
 
 def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64, 128, 256),

@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from visfly_dist.bench.step import STAGES
+from visfly_dist.bench.common import STAGES
 
 PLOT_FILES = {
     "render": "render_fps_vs_resolution.png",

@@ -38,9 +38,9 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from visfly_dist.bench.common import STAGES
 from visfly_dist.errors import ConfigError
 
-STAGES = ("physics", "transport", "render", "queries", "other")
 ACTION_NOISE = 0.1
 """Std of the Gaussian noise added to the hover action: a policy near hover, with some resets."""
 
