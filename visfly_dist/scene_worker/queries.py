@@ -55,7 +55,7 @@ from embreex.mesh_construction import TriangleMesh
 from visfly_dist.host import usable_cores
 from visfly_dist.errors import ConfigError
 from visfly_dist.scene_worker import render_native
-from visfly_dist.scene_worker.render_base import checked_time
+from visfly_dist.scene_worker.render_common import checked_time
 from visfly_dist.scenes.scene import Scene, SceneObject
 from visfly_dist.scenes.solids import solid_components
 

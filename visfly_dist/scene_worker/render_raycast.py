@@ -35,10 +35,10 @@ from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.scene_worker import render_native
 from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays, pixel_slopes, spheres_in_view
-from visfly_dist.scene_worker.shading import SurfaceShader, shade_rgb
-from visfly_dist.scene_worker.render_base import (
-    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id, face_rgb,
+from visfly_dist.scene_worker.render_common import (
+    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id,
 )
+from visfly_dist.scene_worker.shading import SurfaceShader, face_rgb, shade_rgb
 from visfly_dist.scenes.scene import Scene
 
 __all__ = ["RaycastRenderer", "TRACERS", "default_tracer", "face_rgb", "lambert"]

@@ -24,7 +24,7 @@ import trimesh
 
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays
-from visfly_dist.scene_worker.render_base import AMBIENT, LIGHT_DIRECTION
+from visfly_dist.scene_worker.render_common import AMBIENT, LIGHT_DIRECTION
 
 GREY = 128.0
 
@@ -186,3 +186,14 @@ def _corner_colors(mesh: trimesh.Trimesh) -> np.ndarray:
         color = np.asarray(visual.material.main_color, np.float32)[:3]
         return np.broadcast_to(color, (len(mesh.faces), 3, 3)).copy()
     return np.full((len(mesh.faces), 3, 3), GREY, np.float32)
+
+
+def face_rgb(mesh: trimesh.Trimesh) -> np.ndarray:
+    """Per-face RGB ``(F, 3)`` uint8 of a mesh's visual: the colour at each face's centroid.
+
+    Textures are sampled at the centroid's UV (times the base colour factor), vertex colours
+    averaged, face colours taken as they are (see :mod:`visfly_dist.scene_worker.shading`).
+    """
+    third = np.full(len(mesh.faces), 1.0 / 3.0)
+    colors = SurfaceShader([mesh]).colors(np.arange(len(mesh.faces)), third, third)
+    return np.clip(np.round(colors), 0, 255).astype(np.uint8)
