@@ -21,7 +21,7 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from visfly_dist.client.env_base import combined_seed
+from visfly_dist.client.core import combined_seed
 from visfly_dist.errors import ConfigError
 
 _SB3_ONLY_KEYS = ("terminal_observation", "TimeLimit.truncated", "episode")

@@ -1,0 +1,601 @@
+"""The tensor env: a batch of quadrotors in distributed scenes, stepped with torch tensors.
+
+:class:`TensorEnv` owns the batched dynamics state (torch, differentiable) and drives the
+aggregator, which renders and queries the scenes on the workers. Its interface is tensors only:
+``reset_tensor``, ``step_tensor``, and ``send``/``recv`` for groups of agents. The SB3 ``VecEnv``
+(:mod:`visfly_dist.client.sb3`) and the Gymnasium views (:mod:`visfly_dist.client.gym_view`) are
+thin adapters on it, and :class:`~visfly_dist.client.env_base.DroneEnvBase` is the task base that
+tasks subclass; trainers that want no numpy (``training/tensor_ppo.py``) call the core directly.
+
+One step: actions -> ``Quadrotor.step`` -> poses -> ``Aggregator.observe`` -> images to torch (+
+noise) -> ``get_success``, ``get_failure``, then ``get_reward`` (which may read ``self.success`` and
+``self.failure``), then ``get_observation``. ``terminated = success | failure``; ``truncated`` =
+time limit, lost agents (no worker answered) and agents whose scene was swapped. Done agents are
+reset by masked selection and their fresh observation replaces the terminal one, which goes into
+``info["terminal_observation"]``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from visfly_dist.aggregator import Aggregator
+from visfly_dist.aggregator.assembler import empty_observation
+from visfly_dist.client.buffer_pool import BufferPool
+from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
+from visfly_dist.client.frame import SensorFrame
+from visfly_dist.client.noise import SensorNoise
+from visfly_dist.dynamics import QuadState, Quadrotor, load_airframe
+from visfly_dist.errors import ConfigError
+from visfly_dist.protocol.cameras import CameraSpec
+
+PROBE_CAMERA = CameraSpec(name="_probe", kind="depth", width=1, height=1)
+"""Handed to the aggregator when a task has no camera (it needs one); its image is dropped."""
+
+STATE_DIM = 13
+"""``state_vector``: position (relative to an origin), velocity, quaternion wxyz, body rates."""
+
+
+@dataclass(frozen=True)
+class Spawn:
+    """Where agents start: ``uniform`` over the box ``[a, b]`` or ``normal`` (mean ``a``, std ``b``),
+    at least ``clearance`` metres from any obstacle."""
+
+    distribution: str = "uniform"
+    a: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    b: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    clearance: float = 0.5
+
+    @classmethod
+    def around(cls, center: Sequence[float], half_width: Sequence[float], clearance: float = 0.5) -> "Spawn":
+        """Uniform in ``center ± half_width``."""
+        c, h = np.asarray(center, float), np.asarray(half_width, float)
+        return cls("uniform", tuple(c - h), tuple(c + h), clearance)
+
+
+@dataclass
+class _InFlight:
+    """A step that was sent and not yet taken in."""
+
+    ticket: Any
+    group: torch.Tensor
+    members: np.ndarray
+    held: torch.Tensor
+    full: bool
+    spawn_agents: np.ndarray
+    started: float
+    physics_s: float
+    sim_time: float
+
+
+@dataclass
+class StepResult:
+    """What ``step_tensor`` returns (unpacks like a Gymnasium step).
+
+    Attributes:
+        observation: key -> ``(N, ...)`` tensors after auto-reset.
+        reward: ``(N,)``, carries gradients when ``requires_grad``.
+        terminated: ``(N,)`` bool, success or failure.
+        truncated: ``(N,)`` bool, time limit, lost agent, or scene swap (never also terminated).
+        info: ``terminal_observation`` (observation before the reset, all rows), ``success``,
+            ``collision``, ``out_of_bounds``, ``lost``, ``swapped`` (``(N,)`` bool), and
+            ``episode_return`` / ``episode_length`` (``(N,)``, meaningful where done).
+    """
+
+    observation: dict[str, torch.Tensor]
+    reward: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    info: dict[str, Any]
+
+    def __iter__(self):
+        return iter((self.observation, self.reward, self.terminated, self.truncated, self.info))
+
+
+
+class TensorEnv:
+    """A batch of quadrotors in distributed scenes, stepped with tensors (the module docstring).
+
+    Args:
+        config: the settings (a task's own ``config_class``); validated before anything starts.
+
+    Attributes available to the hooks:
+        state: :class:`QuadState` of all agents.
+        frame: :class:`SensorFrame` of the last observation (images, collision, nearest, ...).
+        bounds: ``(N, 2, 3)`` flight box of each agent's scene.
+        actions: ``(N, 4)`` last actions in ``[-1, 1]``.
+        episode_step: ``(N,)`` steps taken in the current episode.
+        success, failure: ``(N,)`` bool of the current step (valid inside ``get_reward``).
+        generator: the env's ``torch.Generator`` (noise, task randomness).
+    """
+
+    config_class: type[EnvConfig] = EnvConfig
+    render_mode = None
+
+    def __init__(self, config: EnvConfig | None = None) -> None:
+        config = self.config_class() if config is None else config
+        config.validate()
+        self.config = config
+        self.device = torch.device(config.device)
+        self.cameras: tuple[CameraSpec, ...] = tuple(config.cameras)
+        n = config.num_envs
+        self.quad = Quadrotor(config.dynamics_config(), load_airframe(config.airframe), num_agents=n, device=self.device)
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(config.seed)
+        self._image_noise = {c.name: SensorNoise(config.noise.get(c.name, ()), c.kind, c.far) for c in self.cameras}
+        self._state_noise = SensorNoise(config.noise.get(STATE_NOISE_KEY, ()), STATE_NOISE_KEY)
+        self._closed = True
+        self._init_views(n, spaces.Dict(self.observation_space_dict()), spaces.Box(-1.0, 1.0, (4,), np.float32))
+        self.aggregator = Aggregator(pool=config.pool, scenes=config.scene_set(), cameras=list(self.cameras or (PROBE_CAMERA,)),
+                                     drone_radius=config.drone_radius, multi_agent=config.multi_agent,
+                                     search_radius=config.search_radius, seed=config.seed)
+        self._closed = False
+        try:
+            self.aggregator.start()
+        except BaseException:
+            self.close()
+            raise
+        self.agent_scene = torch.as_tensor(np.asarray(self.aggregator.agent_scene), device=self.device)
+        self.bounds = self._agent_bounds()
+        zeros = torch.zeros(n, device=self.device)
+        self.episode_step = zeros.long()
+        self.episode_return = zeros.clone()
+        self.success = zeros.bool()
+        self.failure = zeros.bool()
+        self.actions = torch.zeros(n, 4, device=self.device)
+        self.state: QuadState = self.quad.initial_state(torch.zeros(n, 3, device=self.device))
+        self.frame: SensorFrame | None = None
+        self._image_buffers = BufferPool()  # merged images of reset steps, reused once nobody holds them
+        self.frame_timings: dict[str, float] = {}
+        self.step_timings: dict[str, float] = {}
+        # Each agent's next start, drawn ahead so its first view travels with an earlier step.
+        self._next_pos = torch.zeros(n, 3, device=self.device)
+        self._prepared = np.zeros(n, dtype=bool)
+        self._prepared_obs = empty_observation(self.aggregator.cameras, n)
+        self._switched = np.zeros(n, dtype=bool)  # scene swapped, not yet reported
+        self._in_flight: list[_InFlight] = []
+        self.step_mask = torch.ones(n, dtype=torch.bool, device=self.device)
+        self.agents_per_scene = config.agents_per_scene
+        self.sim_time = 0.0   # s: where the moving obstacles are for the group being stepped or taken in
+        self._steps_sent = np.zeros(n, dtype=np.int64)  # per agent, since the last reseed
+        self._everyone = torch.ones(n, dtype=torch.bool, device=self.device)  # read only: the group of a plain step
+        self._no_one = torch.zeros(n, dtype=torch.bool, device=self.device)  # read only: nobody held
+        self._oob: tuple[QuadState, torch.Tensor, torch.Tensor] | None = None  # out_of_bounds of one state
+
+    # ----- task hooks ---------------------------------------------------------------------------
+
+    def get_observation(self) -> dict[str, torch.Tensor]:
+        """Observation entries, ``(N, ...)`` each, keys as in ``observation_space_dict``."""
+        raise NotImplementedError
+
+    def get_reward(self) -> torch.Tensor:
+        """Reward of this step, ``(N,)`` float."""
+        raise NotImplementedError
+
+    def get_success(self) -> torch.Tensor:
+        """``(N,)`` bool: the agent reached its goal this step (terminates the episode)."""
+        raise NotImplementedError
+
+    def get_failure(self) -> torch.Tensor:
+        """``(N,)`` bool: the episode failed (default: collision, inside an obstacle, out of bounds)."""
+        return self.frame.collision | self.frame.inside | self.out_of_bounds()
+
+    def observation_space_dict(self) -> dict[str, spaces.Space]:
+        """Observation spaces: ``state`` (13,) and one image entry per camera; tasks extend it."""
+        out: dict[str, spaces.Space] = {"state": spaces.Box(-np.inf, np.inf, (STATE_DIM,), np.float32)}
+        for cam in self.cameras:
+            out[cam.name] = camera_space(cam)
+        return out
+
+    def spawn_distribution(self) -> Spawn:
+        """Where agents start (the default: 1 m above the origin)."""
+        return Spawn()
+
+    def spawn_positions(self, idx: torch.Tensor) -> torch.Tensor:
+        """Start positions ``(k, 3)`` of agents ``idx``, sampled clear of obstacles by the workers."""
+        spawn = self.spawn_distribution()
+        pos = self.aggregator.sample_spawn(idx.cpu().numpy(), spawn.distribution, spawn.a, spawn.b, spawn.clearance)
+        return torch.as_tensor(np.asarray(pos, dtype=np.float32), device=self.device)
+
+    def spawn_around(self, idx: torch.Tensor, centres: np.ndarray, half_width: Sequence[float],
+                     clearance: float) -> torch.Tensor:
+        """Start positions ``(k, 3)`` of agents ``idx``, uniform in ``centres[i] ± half_width``.
+
+        For tasks whose start box follows a per-scene point (a target, a pad, a lane): one pooled
+        draw per distinct centre.
+        """
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+        out = torch.zeros(len(idx), 3, device=self.device)
+        for centre in np.unique(centres, axis=0):
+            rows = np.flatnonzero((centres == centre).all(axis=1))
+            spawn = Spawn.around(centre, half_width, clearance)
+            pos = self.aggregator.sample_spawn(idx[rows].cpu().numpy(), spawn.distribution, spawn.a, spawn.b,
+                                               spawn.clearance)
+            out[torch.as_tensor(rows)] = torch.as_tensor(np.asarray(pos), dtype=torch.float32, device=self.device)
+        return out
+
+    def reset_agents_hook(self, idx: torch.Tensor) -> None:
+        """Called after agents ``idx`` got their new state, before their first observation."""
+
+    def update_task_state(self) -> None:
+        """Advance the task's own per-step state (previous distances, gate counters, ...).
+
+        Called exactly once per step, after ``get_success``, ``get_failure``, ``get_reward`` and
+        ``get_observation``: those hooks must be pure (calling one twice gives the same result and
+        changes nothing), so that state advances in this one place. With :meth:`send`/:meth:`recv`
+        only the agents of ``self.step_mask`` moved; state derived from the agents' own state is
+        unchanged for the others, and event counters must advance only where ``step_mask`` is set.
+        """
+
+    def precompute(self) -> None:
+        """Hook: compute, while the workers render, what this step's task hooks need from the state
+        alone, into caches keyed on the state object (so the hooks stay pure and give the same
+        result without it). Called once the step's request is on the wire."""
+        TensorEnv.out_of_bounds(self)  # the scene-box part, which tasks extend
+
+    # ----- helpers for tasks --------------------------------------------------------------------
+
+    def state_vector(self, origin: torch.Tensor | None = None) -> torch.Tensor:
+        """``(N, 13)``: position minus ``origin`` (m), velocity (m/s), quaternion wxyz, body rates (rad/s)."""
+        s = self.state
+        pos = s.pos if origin is None else s.pos - origin
+        return torch.cat((pos, s.vel, s.quat, s.omega), dim=1)
+
+    def out_of_bounds(self) -> torch.Tensor:
+        """``(N,)`` bool: the agent left its scene's flight box."""
+        state, bounds = self.state, self.bounds
+        if self._oob is None or self._oob[0] is not state or self._oob[1] is not bounds:
+            pos = state.pos.detach()
+            self._oob = (state, bounds, ((pos < bounds[:, 0]) | (pos > bounds[:, 1])).any(dim=1))
+        return self._oob[2]
+
+    def scene_metadata(self, agent: int) -> dict[str, Any]:
+        """Metadata of the scene agent ``agent`` flies in (goal regions and the like)."""
+        return self.aggregator.scene_metadata(int(self.agent_scene[agent]))
+
+    # ----- core step ----------------------------------------------------------------------------
+
+    def step_tensor(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
+        """Advance every agent one control step, keeping torch tensors (and gradients).
+
+        Args:
+            actions: ``(N, 4)`` in ``[-1, 1]``; values outside are clipped.
+            hold: ``(N,)`` bool: agents that stay where they are this step (their action is ignored,
+                their reward is 0 and their episode neither advances nor ends). Gymnasium's
+                NEXT_STEP autoreset uses it for the step that returns a reset agent's first view.
+        """
+        self._check_open()
+        self._check_no_flight("step()")
+        if self.frame is None:
+            self._first_reset()
+        with torch.set_grad_enabled(self.config.requires_grad):
+            return self._step(actions, hold)
+
+    def _step(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
+        return self._finish(self._send(self._actions(actions, self.num_envs), self._everyone, hold))
+
+    def _actions(self, actions: torch.Tensor | np.ndarray, k: int) -> torch.Tensor:
+        actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
+        if actions.shape != (k, 4):
+            raise ConfigError(f"actions of shape {tuple(actions.shape)} must be ({k}, 4)")
+        return actions.clamp(-1.0, 1.0)
+
+    def _send(self, actions: torch.Tensor, group: torch.Tensor, hold: torch.Tensor | None) -> _InFlight:
+        """Advance the agents of ``group`` (``(N,)`` bool) and put their observation on the wire."""
+        t0 = time.perf_counter()
+        members = group.cpu().numpy()
+        agents = np.flatnonzero(members)
+        held = self._no_one if hold is None else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
+        full = len(agents) == self.num_envs and hold is None  # every agent moves: no masking needed
+        stepped = self.quad.step(self.state, actions)
+        self.state = stepped if full or bool((group & ~held).all()) else QuadState.where(group & ~held, stepped, self.state)
+        self.actions = actions if len(agents) == self.num_envs else torch.where(group[:, None], actions, self.actions)
+        t1 = time.perf_counter()
+        spawn_agents = np.flatnonzero(~self._prepared & members)
+        poses = self.state.pose().detach().cpu().numpy()
+        # groups stepped in turn share one clock: a group's k-th step happens at k * ctrl_dt
+        self._steps_sent[agents] += 1
+        sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
+        self.sim_time = sim_time
+        ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
+                                        spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
+                                        sim_time=sim_time)
+        self.precompute()  # the workers render meanwhile
+        return _InFlight(ticket, group, members, held, full, spawn_agents, t0, t1 - t0, sim_time)
+
+    def _finish(self, flight: _InFlight) -> StepResult:
+        """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
+        rows of ``flight.group`` are this step's (the others are zero / False)."""
+        t0 = time.perf_counter()
+        self.sim_time = flight.sim_time  # the task hooks see this group's time
+        obs, spawn_obs = self.aggregator.collect(flight.ticket)
+        if len(flight.spawn_agents):
+            ok = ~spawn_obs.lost
+            self._store_prepared(spawn_obs, np.flatnonzero(ok), flight.spawn_agents[ok])
+        self.frame_timings = dict(obs.timings)
+        rows = self._frame(obs)
+        everyone = len(flight.ticket.agents) == self.num_envs
+        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)
+        t1 = time.perf_counter()
+        group, full = flight.group, flight.full
+        # with every agent moving (a plain step) the group and hold masks select everything: skip them
+        live = group if full else group & ~flight.held
+        self.step_mask = live
+        self.episode_step = self.episode_step + 1 if full else self.episode_step + live.long()
+        lost = self.frame.lost if full else self.frame.lost & group
+        success = self.get_success() & ~lost
+        self.success = success if full else success & live
+        failure = self.get_failure() & ~lost & ~self.success
+        self.failure = failure if full else failure & live
+        reward = self.get_reward()
+        if not full and not bool(live.all()):
+            reward = torch.where(live, reward, torch.zeros_like(reward))
+        self.episode_return = self.episode_return + reward.detach()
+        observation = self._observation()
+        self.update_task_state()
+
+        terminated = self.success | self.failure
+        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
+        terminated, truncated = self.expand_resets(terminated, truncated if full else truncated & live)
+        swapped = self._take_swapped(flight.members)
+        if swapped is None:
+            swapped = torch.zeros_like(terminated)
+        else:
+            swapped = swapped & ~terminated
+            truncated = truncated | swapped
+        collision, out_of_bounds = self.frame.collision, self.out_of_bounds()
+        info = {"terminal_observation": observation, "success": self.success, "lost": lost,
+                "collision": collision if full else collision & group,
+                "out_of_bounds": out_of_bounds if full else out_of_bounds & group,
+                "swapped": swapped, "episode_return": self.episode_return,
+                "episode_length": self.episode_step}
+        done = terminated | truncated
+        if bool(done.any()):
+            self.aggregator.note_resets(done.nonzero().squeeze(1).cpu().numpy())
+            observation = self._reset_agents(done, observation)
+        self.step_timings = {**self.frame_timings, "physics_s": flight.physics_s,
+                             "observe_s": self.frame_timings.get("total_s", t1 - t0),
+                             "total_s": time.perf_counter() - flight.started}
+        return StepResult(observation, reward, terminated, truncated, info)
+
+    # ----- asynchronous stepping (EnvPool-style) --------------------------------------------------
+
+    def send(self, actions: torch.Tensor | np.ndarray, env_ids: torch.Tensor | np.ndarray) -> None:
+        """Step the agents ``env_ids`` with ``actions`` (``(k, 4)``) and return at once.
+
+        Several groups may be in flight (disjoint ``env_ids``); :meth:`recv` returns whichever is
+        ready first. Meanwhile the caller can compute the next actions of another group, so the
+        learner and the scene workers work at the same time (and a network round trip is hidden).
+        In multi-agent scenes a group must hold whole teams (drones see those of their request).
+        """
+        self._check_open()
+        if self.frame is None:
+            self._first_reset()
+        ids = torch.as_tensor(np.asarray(env_ids), dtype=torch.long, device=self.device).reshape(-1)
+        if ids.numel() == 0 or int(ids.min()) < 0 or int(ids.max()) >= self.num_envs or len(set(ids.tolist())) != len(ids):
+            raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {ids.tolist()[:10]}")
+        group = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        group[ids] = True
+        busy = [f.group for f in self._in_flight]
+        if any(bool((g & group).any()) for g in busy):
+            raise ConfigError("send(): some env_ids are still in flight; recv() them first")
+        if self.agents_per_scene > 1 and self.config.multi_agent:
+            teams = group.view(-1, self.agents_per_scene)
+            if bool((teams.any(dim=1) & ~teams.all(dim=1)).any()):
+                raise ConfigError(f"send(): env_ids must hold whole teams of {self.agents_per_scene} agents")
+        full = self.actions.detach().clone()
+        full[ids] = self._actions(actions, len(ids))
+        with torch.set_grad_enabled(self.config.requires_grad):
+            self._in_flight.append(self._send(full, group, None))
+
+    def recv(self, timeout_s: float | None = None) -> tuple[StepResult, torch.Tensor]:
+        """The step of the first group whose observations are in: its rows only, and its env ids.
+
+        Raises:
+            ConfigError: nothing was sent.
+        """
+        if not self._in_flight:
+            raise ConfigError("recv() without a send() in flight")
+        i = self.aggregator.wait_any([f.ticket for f in self._in_flight], timeout_s)
+        flight = self._in_flight.pop(0 if i is None else i)  # on timeout, the oldest (its collect is bounded)
+        with torch.set_grad_enabled(self.config.requires_grad):
+            result = self._finish(flight)
+        ids = flight.group.nonzero().squeeze(1)
+        def rows(v: torch.Tensor) -> torch.Tensor:
+            return v.index_select(0, ids)  # images: several times faster than v[ids]
+
+        pick = {k: rows(v) for k, v in result.info.items() if k != "terminal_observation"}
+        pick["terminal_observation"] = {k: rows(v) for k, v in result.info["terminal_observation"].items()}
+        return StepResult({k: rows(v) for k, v in result.observation.items()}, rows(result.reward),
+                          rows(result.terminated), rows(result.truncated), pick), ids
+
+    def _take_swapped(self, members: np.ndarray) -> torch.Tensor | None:
+        """``(N,)`` bool: agents of ``members`` whose scene was swapped (None if none); they start
+        their next episode in the new scene."""
+        self._switched |= self.aggregator.take_switched()
+        swapped = self._switched & members
+        if not swapped.any():
+            return None
+        self._switched &= ~members
+        self.bounds = self._agent_bounds()
+        self._prepared &= ~swapped  # their next start lies in the new scene
+        swapped = torch.as_tensor(swapped, device=self.device)
+        self._draw_next_starts(swapped.nonzero().squeeze(1))
+        return swapped
+
+    def expand_resets(self, terminated: torch.Tensor, truncated: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Hook: end further episodes because of these (teams end together in multi-agent tasks)."""
+        return terminated, truncated
+
+    def _frame(self, obs: Any) -> SensorFrame:
+        return SensorFrame.from_observation(obs, self.device, self._image_noise, self.generator,
+                                            cameras=[c.name for c in self.cameras])
+
+    def _store_prepared(self, obs: Any, rows: np.ndarray, agents: np.ndarray) -> None:
+        store = self._prepared_obs
+        for name, image in store.images.items():
+            image[agents] = obs.images[name][rows]
+        for key in ("collision", "inside", "nearest", "distance", "lost"):
+            getattr(store, key)[agents] = getattr(obs, key)[rows]
+        self._prepared[agents] = True
+
+    def _draw_next_starts(self, idx: torch.Tensor) -> None:
+        """Draw the start of the next episode of agents ``idx`` (its view is rendered with the next step)."""
+        if len(idx) == 0:
+            return
+        self._next_pos[idx] = self.spawn_positions(idx).detach().to(self._next_pos.dtype)
+        self._prepared[idx.cpu().numpy()] = False
+
+    def _start_poses(self, agents: np.ndarray) -> np.ndarray:
+        """``(k, 7)`` poses of the agents' next starts: at ``_next_pos``, level and at rest, as
+        ``Quadrotor.initial_state`` puts them."""
+        poses = np.zeros((len(agents), 7), dtype=np.float32)
+        if len(agents) == 0:
+            return poses
+        poses[:, :3] = self._next_pos[torch.as_tensor(agents, dtype=torch.long)].cpu().numpy()
+        poses[:, 3] = 1.0
+        return poses
+
+    def _observation(self) -> dict[str, torch.Tensor]:
+        obs = self.get_observation()
+        if self._state_noise and "state" in obs:
+            obs = {**obs, "state": self._state_noise(obs["state"], self.generator)}
+        return obs
+
+    def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
+        """Reset the agents in ``mask`` to their drawn next start; return ``observation`` with their
+        rows replaced by the first view of their new episode (rendered ahead, or now if it is not)."""
+        idx = mask.nonzero().squeeze(1)
+        idx_np = idx.cpu().numpy()
+        fresh = self.quad.initial_state(self._next_pos)
+        self.state = QuadState.where(mask, fresh, self.state)
+        self.episode_step = torch.where(mask, 0, self.episode_step)
+        self.episode_return = torch.where(mask, 0.0, self.episode_return)
+        self.reset_agents_hook(idx)
+        missing = idx_np[~self._prepared[idx_np]]
+        if len(missing):  # first reset, a swapped scene, or a failed worker: render now (a second round trip)
+            obs = self.aggregator.observe(self._start_poses(missing), agents=missing, sim_time=self.sim_time)
+            self._store_prepared(obs, np.arange(len(missing)), missing)
+        rows = self._frame(self._prepared_obs.take(idx_np))
+        before = self.frame
+        self.frame = rows if observation is None else self.frame.scatter(idx, rows, self._image_buffers)
+        self._draw_next_starts(idx)
+        fresh_obs = self._observation()
+        if observation is None:
+            return fresh_obs
+        # An entry that is the frame's image before and after the reset already holds the old rows
+        # outside ``mask`` (scatter wrote the new rows into a copy): no second select of every image.
+        passed = {k for k, v in fresh_obs.items()
+                  if v is self.frame.images.get(k) and observation[k] is before.images.get(k)}
+        return {k: v if k in passed else torch.where(mask.reshape((-1,) + (1,) * (v.dim() - 1)), v, observation[k])
+                for k, v in fresh_obs.items()}
+
+    def _agent_bounds(self) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(self.aggregator.agent_bounds(), dtype=np.float32), device=self.device)
+
+
+    # ----- resets and life cycle ----------------------------------------------------------------
+
+    def reset_tensor(self, seeds: Sequence[int] | None = None) -> dict[str, torch.Tensor]:
+        """Reset every agent (from ``seeds``, one per agent, when given); the observation as tensors.
+
+        Groups still in flight (:meth:`send`) are taken in and dropped: their step never happened."""
+        self._check_open()
+        self._drop_in_flight()
+        if seeds is not None:
+            self._reseed(seeds)
+        with torch.set_grad_enabled(self.config.requires_grad):
+            self.state = self.state.detach()
+            everyone = torch.arange(self.num_envs, device=self.device)
+            self._draw_next_starts(everyone)
+            return self._reset_agents(torch.ones(self.num_envs, dtype=torch.bool, device=self.device), None)
+
+    def reset_some_tensor(self, mask: torch.Tensor | np.ndarray, seeds: Sequence[int] | None = None) -> dict[str, torch.Tensor]:
+        """Reset only the agents in ``mask`` (``(N,)`` bool); the observation of every agent as tensors.
+
+        ``seeds``: one per agent of ``mask`` (in index order): each restarts from its own seed, so
+        the same seeds give the same starts whatever happened before.
+        """
+        self._check_open()
+        self._check_no_flight("reset_some()")
+        mask = torch.as_tensor(np.asarray(mask, dtype=bool), device=self.device)
+        if mask.shape != (self.num_envs,):
+            raise ConfigError(f"reset mask of shape {tuple(mask.shape)} must be ({self.num_envs},)")
+        if self.frame is None:
+            return self.reset_tensor()
+        if seeds is not None:
+            idx = mask.nonzero().squeeze(1)
+            self._reseed(seeds, idx.cpu().numpy())
+            self._draw_next_starts(idx)  # from the new streams, not the starts drawn before
+        with torch.set_grad_enabled(self.config.requires_grad):
+            return self._reset_agents(mask, self._observation())
+
+    def _first_reset(self) -> None:
+        """A step before any reset resets every agent first (an adapter applies its own seeding)."""
+        self.reset_tensor()
+
+    def _init_views(self, num_envs: int, observation_space: spaces.Dict, action_space: spaces.Box) -> None:
+        """Set the batch size and spaces (an adapter, such as the SB3 ``VecEnv``, adds its own state)."""
+        self.num_envs, self.observation_space, self.action_space = num_envs, observation_space, action_space
+
+    def _reseed(self, seeds: Sequence[int], agents: np.ndarray | None = None) -> None:
+        """Restart the random streams: the spawn draws of agent ``agents[i]`` (default: every agent)
+        from ``seeds[i]``, the noise generator from all of ``seeds``. The moving obstacles' clock,
+        which every agent shares, restarts when every agent is reseeded."""
+        seeds = [int(s) for s in seeds]
+        self.generator.manual_seed(combined_seed(seeds))
+        self.aggregator.reseed(seeds, agents)
+        if agents is None or len(agents) == self.num_envs:
+            self.sim_time = 0.0   # the same seed starts the moving obstacles from the same places
+            self._steps_sent[:] = 0
+
+    def _check_no_flight(self, what: str) -> None:
+        if self._in_flight:
+            raise ConfigError(f"{what} while {len(self._in_flight)} group(s) sent with send() are in flight; recv() them first")
+
+    def _drop_in_flight(self) -> None:
+        """Take in the groups in flight and forget them (their image segments are released)."""
+        while self._in_flight:
+            self.aggregator.collect(self._in_flight.pop(0).ticket)
+
+    def detach(self) -> None:
+        """Cut the autograd graph (truncated BPTT): the state keeps its values, loses its history."""
+        self.state = self.state.detach()
+        self.actions = self.actions.detach()
+
+    def close(self) -> None:
+        """Stop the aggregator and its workers; safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+        self.aggregator.close()
+
+    def __enter__(self) -> "TensorEnv":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ConfigError("this env is closed; build a new one (make_env) to keep going")
+
+
+def camera_space(cam: CameraSpec) -> spaces.Box:
+    """The observation space of one camera: depth float32 [0, far], RGB uint8, segmentation uint16."""
+    if cam.kind == "depth":
+        return spaces.Box(0.0, float(cam.far), cam.shape, np.float32)
+    if cam.kind == "rgb":
+        return spaces.Box(0, 255, cam.shape, np.uint8)
+    return spaces.Box(0, np.iinfo(np.uint16).max, cam.shape, np.uint16)
+
+
+def combined_seed(seeds: Sequence[int]) -> int:
+    """One non-negative 63-bit seed from several (each entry changes it; the same list gives the same)."""
+    return int(np.random.SeedSequence([s & (2**64 - 1) for s in seeds]).generate_state(1, np.uint64)[0] >> np.uint64(1))
