@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from tests.aggregator.conftest import CAMERAS, make_aggregator, spawn_poses
@@ -17,6 +18,7 @@ from visfly_dist.protocol.messages import LoadScene
 from visfly_dist.protocol.session import client_of, open_session
 
 SCENES = {"sources": ("gen:pillars",), "num_scenes": 2, "agents_per_scene": 2}
+HEAVY = "gen:garage-stones?density=0.8"  # seconds of generation: a load that is surely in flight
 
 
 def _router(endpoint: str) -> subprocess.Popen:
@@ -101,6 +103,32 @@ def test_scenes_a_worker_loaded_without_the_run_knowing_are_unloaded_when_it_rea
                             timeout=60), _held(agg)
             assert wait_for(lambda: (agg.observe(poses), _held(agg) == _served(agg))[1], timeout=30), \
                 (_held(agg), _served(agg))
+    finally:
+        stop_process(w)
+        stop_process(router)
+
+
+def test_a_router_killed_while_a_load_is_in_flight_leaves_no_scene_behind(router_endpoint, scene_root):
+    """The load's reply is lost with the router; the worker finishes the load anyway. Once the router
+    is back, the run serves its scenes again and the worker holds exactly those."""
+    endpoint, router = router_endpoint
+    w = start_worker("inflight", endpoint, scene_root, connect=True, worker_id="wl", extra_args=["--lease-ms", "1000"])
+    try:
+        with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "inflight",
+                                   "step_timeout_s": 2.0, "outage_limit_s": 60.0},
+                             scenes={"sources": (HEAVY,), "num_scenes": 1, "agents_per_scene": 1,
+                                     "swap_every_resets": 1}) as agg:
+            poses = spawn_poses(agg)
+            assert not agg.observe(poses).lost.any()
+            agg.note_resets(np.array([0]))  # a swap: the next scene loads in the background (seconds)
+            assert wait_for(lambda: any(h.get("loading") for h in agg.health()), timeout=30, interval=0.05)
+            router.kill()  # the router dies with the load in flight
+            router.wait()
+            router = _router(endpoint)
+            assert wait_for(lambda: (agg.observe(poses), agg.workers == ["wl"] and _held(agg) == _served(agg)
+                                     and not any(h.get("loading") for h in agg.health()))[1], timeout=90), \
+                (_held(agg), _served(agg))
+            assert not agg.observe(poses).lost.any()
     finally:
         stop_process(w)
         stop_process(router)
