@@ -22,7 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "worker": ("visfly_dist.scene_worker.cli", "serve scenes (render + obstacle queries) over Zenoh"),
     "router": ("visfly_dist.aggregator.router_cli", "run a Zenoh router for a multi-machine pool"),
     "launch": ("visfly_dist.aggregator.launch_cli", "keep a local pool of scene workers alive"),
-    "scenes": ("visfly_dist.scenes.cli", "generate and preview scenes"),
+    "scenes": ("visfly_dist.scene_worker.scenes_cli", "generate and preview scenes"),
     "plot": ("visfly_dist.dynamics.plot_cli", "plot controller step responses"),
     "bench": ("visfly_dist.bench.cli", "benchmarks: physics, render, step, all"),
 }

@@ -7,7 +7,7 @@ import pytest
 
 from visfly_dist.errors import SceneError
 from visfly_dist.scenes import GENERATORS, generate_scene
-from visfly_dist.scenes.cli import KINDS
+from visfly_dist.scene_worker.scenes_cli import KINDS
 from visfly_dist.scenes.primitives import sphere_hits_box
 
 ALL_KINDS = sorted(GENERATORS)

@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from visfly_dist.bench.common import CLEARANCE, DRONE_RADIUS, bench_poses
+from visfly_dist.bench.common import DRONE_RADIUS, bench_poses
 from visfly_dist.errors import ConfigError, RemoteError, TransportTimeoutError
 from visfly_dist.protocol.cameras import SENSOR_KINDS, CameraSpec
 

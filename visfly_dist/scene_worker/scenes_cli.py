@@ -5,6 +5,8 @@
     visfly-dist scenes preview "gen:gap-walls?seed=0&gap_width=1.0" --out gap.png
 
 Heavy imports (trimesh, renderers, matplotlib) happen inside the commands, so ``--help`` stays fast.
+The command lives in ``scene_worker`` because ``preview`` draws with the worker's renderers:
+``scene_worker -> scenes`` is the allowed direction, and ``scenes`` imports nothing of the worker.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Scenes: loading meshes and Habitat datasets, generating scenes, saving them, spawn sampling.
 
 World frame z-up (ENU), metres. See docs/CONTRACTS.md for how the other parts use this API. The
-names below are imported on first use, so ``visfly_dist.scenes.cli`` stays light to import.
+names below are imported on first use, so ``visfly_dist.scene_worker.scenes_cli`` stays light to import.
 """
 
 from __future__ import annotations
