@@ -8,12 +8,15 @@ it succeeds when every member does, its end cause is its members' first in ``END
 Returns are the env's raw rewards (``info["episode"]`` of ``VecMonitor``), never the normalised ones.
 Each episode's end cause comes from :func:`visfly_dist.tasks.outcomes.end_cause`; the scene it
 flew in is the concrete source of its scene slot (a seeded ``gen:`` spec or a root-relative path).
+A recurrent policy (``train --recurrent``: an sb3-contrib ``RecurrentPPO`` checkpoint, recognised from
+the zip) carries its LSTM state from step to step, per agent, zeroed where that agent's episode starts.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import zipfile
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,7 +31,7 @@ from visfly_dist.tasks import make_env, task_class
 from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
 from visfly_dist.training.checkpoints import load_normalization, norm_path
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.ppo import env_kwargs
+from visfly_dist.training.env_setup import env_kwargs
 from visfly_dist.training.video import VideoRecorder
 
 
@@ -121,15 +124,38 @@ def find_run_config(checkpoint: Path) -> TrainConfig | None:
     return None
 
 
-def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[PPO, VecEnv]:
-    """Load a PPO checkpoint for ``env``; wraps ``env`` in its saved normalisation when there is one."""
+def is_recurrent_checkpoint(checkpoint: Path) -> bool:
+    """Whether ``checkpoint`` (an SB3 ``.zip``) holds an sb3-contrib recurrent policy (``RecurrentPPO``):
+    read from the policy class recorded in the zip, without unpickling anything."""
+    try:
+        with zipfile.ZipFile(checkpoint) as z:
+            data = json.loads(z.read("data"))
+    except (zipfile.BadZipFile, KeyError, ValueError) as exc:
+        raise ConfigError(f"checkpoint {checkpoint} is not a model .zip written by 'visfly-dist train' ({exc})") from exc
+    policy_class = data.get("policy_class")
+    module = policy_class.get("__module__", "") if isinstance(policy_class, dict) else ""
+    return module.startswith("sb3_contrib.common.recurrent")
+
+
+def is_recurrent(model: Any) -> bool:
+    """Whether ``model`` (an SB3 model) has a recurrent policy, whose ``predict`` takes and returns a state."""
+    return hasattr(getattr(model, "policy", None), "lstm_actor")
+
+
+def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[Any, VecEnv]:
+    """Load a PPO (or, recognised from the zip, RecurrentPPO) checkpoint for ``env``; wraps ``env`` in
+    its saved normalisation when there is one."""
     if not checkpoint.is_file():
         raise ConfigError(f"checkpoint {str(checkpoint)!r} does not exist; pass a .zip written by 'visfly-dist train'")
     stats = norm_path(checkpoint)
     if stats.is_file():
         env = load_normalization(env, stats)
+    if is_recurrent_checkpoint(checkpoint):
+        from sb3_contrib import RecurrentPPO as cls
+    else:
+        cls = PPO
     try:
-        model = PPO.load(checkpoint, env=env, device=device)
+        model = cls.load(checkpoint, env=env, device=device)
     except ValueError as exc:
         raise ConfigError(f"checkpoint {checkpoint} does not fit this env ({exc}); evaluate with the training's task and --set settings") from exc
     return model, env
@@ -154,7 +180,8 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     """Run ``model`` on ``env`` (reseeded with ``seed``) until ``episodes`` episodes are counted.
 
     Args:
-        model: the policy.
+        model: the policy; a recurrent one (:func:`is_recurrent`) gets its state back each step,
+            zeroed for the agents whose episode starts (all of them after the reset).
         env: the (possibly normalising) VecEnv the model was loaded with.
         episodes: episodes to count (>= 1).
         deterministic: take the mean action instead of sampling.
@@ -176,14 +203,19 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     last_failure: list[np.ndarray] = []
     env.seed(seed)
     obs = env.reset()
+    recurrent, state, starts = is_recurrent(model), None, np.ones(n, dtype=bool)
     step, ret = 0, 0.0
     while len(log) < episodes:
         if filming:
             recorder.add(obs, f"step {step}  return {ret:.2f}")
         sources = _slot_sources(base)
         agent_scene = np.asarray(base.agent_scene.cpu())
-        actions, _ = model.predict(obs, deterministic=deterministic)
+        if recurrent:
+            actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=deterministic)
+        else:
+            actions, _ = model.predict(obs, deterministic=deterministic)
         obs, rewards, dones, infos = env.step(actions)
+        starts = np.asarray(dones, dtype=bool)
         if filming:
             raw = env.get_original_reward() if isinstance(env, VecNormalize) else rewards
             step, ret = step + 1, ret + float(raw[recorder.agent])

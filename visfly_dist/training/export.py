@@ -14,7 +14,9 @@ Inputs are named after the observation keys (``depth``, ``state``, ``target``, .
 leading batch axis of any size; the output is ``action`` ``(B, 4)``. A policy with a recurrent
 core (see :class:`RecurrentCore`) gets one more input ``hidden_in`` and output ``hidden_out``, both
 ``(B, *core.hidden_shape)``: feed ``hidden_out`` back as the next step's ``hidden_in`` and zeros at
-the start of an episode. What each input holds, its units and frame, and how ``action`` maps onto
+the start of an episode. A ``visfly-dist train --recurrent`` checkpoint (sb3-contrib ``RecurrentPPO``)
+is exported with its actor LSTM as that core (:class:`LstmCore`): ``hidden`` is ``(B, 2, layers, units)``,
+``[:, 0]`` the LSTM's h and ``[:, 1]`` its c. What each input holds, its units and frame, and how ``action`` maps onto
 the controller's physical command are written into the file's metadata (``visfly`` key, JSON) and
 documented in docs/DEPLOY.md; ``deploy/onnx_runner.py`` runs the file with numpy and onnxruntime only.
 """
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, Sequence
@@ -118,6 +121,34 @@ class RecurrentCore(Protocol):
     hidden_shape: tuple[int, ...]
 
     def __call__(self, features: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+class LstmCore(nn.Module):
+    """A :class:`RecurrentCore` of an ``nn.LSTM`` (RecurrentPPO's ``policy.lstm_actor``): one step,
+    ``hidden`` ``(B, 2, layers, units)`` packing the LSTM's ``(h, c)`` (each ``(layers, B, units)`` in torch)."""
+
+    def __init__(self, lstm: nn.LSTM) -> None:
+        super().__init__()
+        if lstm.batch_first or lstm.bidirectional:
+            raise ConfigError("LstmCore takes a sequence-first, one-directional LSTM (RecurrentPPO's)")
+        self.lstm = lstm
+        self.hidden_shape = (2, lstm.num_layers, lstm.hidden_size)
+
+    def forward(self, features: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h, c = hidden[:, 0].transpose(0, 1).contiguous(), hidden[:, 1].transpose(0, 1).contiguous()
+        out, (h, c) = self.lstm(features.unsqueeze(0), (h, c))
+        return out[0], torch.stack((h, c)).permute(2, 0, 1, 3)
+
+    @staticmethod
+    def pack(state: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """SB3-contrib's ``(h, c)`` state of ``predict`` (each ``(layers, B, units)``) as ``hidden`` ``(B, 2, layers, units)``."""
+        return np.stack([np.asarray(state[0]), np.asarray(state[1])]).transpose(2, 0, 1, 3).astype(np.float32)
+
+    @staticmethod
+    def unpack(hidden: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inverse of :meth:`pack`."""
+        hidden = np.asarray(hidden)
+        return hidden[:, 0].transpose(1, 0, 2).copy(), hidden[:, 1].transpose(1, 0, 2).copy()
 
 
 @dataclass
@@ -271,7 +302,10 @@ def export_policy(policy: Any, out: str | Path, normalization: ObsNormalization 
     out.parent.mkdir(parents=True, exist_ok=True)
     # The TorchScript-based exporter: the policy is plain layers, it needs no onnxscript, and the
     # image trunk takes its plain (unfused) path while exporting (extractors.ConvPoolSequential).
-    with torch.no_grad():
+    with torch.no_grad(), warnings.catch_warnings():
+        # the LSTM's initial state is an input (hidden_in), so any batch size runs
+        warnings.filterwarnings("ignore", message="Exporting a model to ONNX with a batch_size other than 1")
+        warnings.filterwarnings("ignore", message="Converting a tensor to a Python boolean")  # nn.LSTM's shape checks
         torch.onnx.export(actor, tuple(dummies), str(out), input_names=names, output_names=outputs,
                           dynamic_axes=dynamic, opset_version=opset, dynamo=False)
     inputs = input_specs(space, cameras)
@@ -310,7 +344,8 @@ def task_metadata(task: str, env_settings: dict[str, Any]) -> tuple[dict[str, An
 
 def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_settings: dict[str, Any] | None = None,
                       opset: int = OPSET) -> ExportInfo:
-    """Export a ``visfly-dist train`` checkpoint (``.zip``, with its ``*.norm.npz`` when there is one).
+    """Export a ``visfly-dist train`` checkpoint (``.zip``, with its ``*.norm.npz`` when there is one);
+    a RecurrentPPO one (``--recurrent``) with its actor LSTM as the core (``hidden_in``/``hidden_out``).
 
     ``env_settings`` are the ``make_env`` settings of the run (default: those of its ``config.json``
     when found, else the task's defaults); they only fill the metadata.
@@ -318,8 +353,8 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     from stable_baselines3 import PPO
 
     from visfly_dist.training.checkpoints import norm_path
-    from visfly_dist.training.evaluation import find_run_config
-    from visfly_dist.training.ppo import env_kwargs
+    from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint
+    from visfly_dist.training.env_setup import env_kwargs
 
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file() or checkpoint.suffix != ".zip":
@@ -327,7 +362,14 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     if env_settings is None:
         run_cfg = find_run_config(checkpoint)
         env_settings = env_kwargs(run_cfg.resolved()) if run_cfg is not None and run_cfg.task == task else {}
-    model = PPO.load(checkpoint, device="cpu")
+    recurrent = is_recurrent_checkpoint(checkpoint)
+    if recurrent:
+        from sb3_contrib import RecurrentPPO
+
+        model = RecurrentPPO.load(checkpoint, device="cpu")
+        core: nn.Module | None = LstmCore(model.policy.lstm_actor)
+    else:
+        model, core = PPO.load(checkpoint, device="cpu"), None
     stats = norm_path(checkpoint)
     normalization = ObsNormalization.load(stats) if stats.is_file() else None
     meta, cameras = task_metadata(task, env_settings)
@@ -336,7 +378,10 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     if missing:
         raise ConfigError(f"checkpoint {checkpoint} observes {missing}, which task {task!r} does not give; is it another task's?")
     meta.update(source_checkpoint=str(checkpoint), normalization=str(stats) if normalization is not None else None)
-    return export_policy(model.policy, out, normalization, metadata=meta, cameras=cameras, opset=opset)
+    if core is not None:
+        meta["recurrent_core"] = dict(kind="lstm", layers=core.lstm.num_layers, units=core.lstm.hidden_size,
+                                      text="hidden[:, 0] is the LSTM's h, hidden[:, 1] its c, each (layers, units)")
+    return export_policy(model.policy, out, normalization, core=core, metadata=meta, cameras=cameras, opset=opset)
 
 
 def describe(info: ExportInfo) -> str:
@@ -363,5 +408,5 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     return json.loads(props[METADATA_KEY]) if METADATA_KEY in props else {}
 
 
-__all__ = ["DeployedActor", "ExportInfo", "ObsNormalization", "RecurrentCore", "action_mapping", "describe",
+__all__ = ["DeployedActor", "ExportInfo", "LstmCore", "ObsNormalization", "RecurrentCore", "action_mapping", "describe",
            "export_checkpoint", "export_policy", "read_metadata", "task_metadata"]
