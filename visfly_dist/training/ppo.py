@@ -34,21 +34,17 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 import torch
-from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
-from visfly_dist.aggregator.config import PoolConfig
-from visfly_dist.errors import ConfigError
-from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.tasks import make_env, task_class
+from visfly_dist.tasks import make_env
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
 from visfly_dist.host import usable_cores
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
+from visfly_dist.training.env_setup import env_kwargs, vector_keys  # noqa: F401 - env_kwargs also re-exported
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.host_plan import apply_host_plan
 from visfly_dist.training.memory import keep_freed_memory
@@ -68,40 +64,6 @@ class TrainResult:
     summary: dict[str, float]
     config: TrainConfig | None = None
     """The resolved configuration the run trained with (host plan included)."""
-
-
-def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
-    """Keyword arguments of ``make_env`` for this run: seed, ``--set`` overrides, pool settings.
-
-    ``--set`` values arrive as JSON: ``cameras`` entries given as maps become ``CameraSpec``s, and
-    a ``pool`` map changes fields of the task's default ``PoolConfig`` (as ``--workers`` etc. do).
-
-    Raises:
-        ConfigError: unknown task or pool field.
-    """
-    overrides = dict(cfg.overrides)
-    pool_changes = overrides.pop("pool", {}) or {}
-    if not isinstance(pool_changes, dict):
-        raise ConfigError(f"--set pool={pool_changes!r} must be a JSON map of PoolConfig fields, e.g. pool={{\"lease_ms\":5000}}")
-    flags = {"num_local_workers": cfg.workers, "worker_threads": cfg.worker_threads,
-             "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id,
-             "backend": cfg.backend, "scene_roots": tuple(cfg.scene_roots) or None}
-    pool_changes.update({k: v for k, v in flags.items() if v is not None})
-    kwargs: dict[str, Any] = {"seed": cfg.seed, **overrides}
-    if isinstance(kwargs.get("cameras"), list):
-        kwargs["cameras"] = tuple(CameraSpec.from_dict(c) if isinstance(c, dict) else c for c in kwargs["cameras"])
-    if pool_changes:
-        default_pool = task_class(cfg.task).config_class().pool
-        unknown = sorted(set(pool_changes) - set(PoolConfig.__dataclass_fields__))
-        if unknown:
-            raise ConfigError(f"unknown pool setting(s) {unknown}; valid: {sorted(PoolConfig.__dataclass_fields__)}")
-        kwargs["pool"] = replace(default_pool, **pool_changes)
-    return kwargs
-
-
-def vector_keys(space: spaces.Dict) -> list[str]:
-    """Float entries that are not images: the ones VecNormalize normalises."""
-    return [k for k, s in space.spaces.items() if isinstance(s, spaces.Box) and len(s.shape) < 3 and np.issubdtype(s.dtype, np.floating)]
 
 
 def build_env(cfg: TrainConfig) -> VecEnv:
