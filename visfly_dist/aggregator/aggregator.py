@@ -37,7 +37,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from visfly_dist.aggregator.assembler import (
-    Observation, blank_observation, copy_rows, empty_observation, scatter_reply,
+    Observation,
+    blank_observation,
+    copy_rows,
+    empty_observation,
+    scatter_reply,
 )
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset

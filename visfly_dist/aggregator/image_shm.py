@@ -42,7 +42,14 @@ import numpy as np
 
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
-    NAME_PREFIX, NONCE_BYTES, SEQ, SEQ_OFFSET, SHM_DIR, SegmentTarget, align, block_bytes,
+    NAME_PREFIX,
+    NONCE_BYTES,
+    SEQ,
+    SEQ_OFFSET,
+    SHM_DIR,
+    SegmentTarget,
+    align,
+    block_bytes,
 )
 from visfly_dist.protocol.shm import files_in_use
 

@@ -19,9 +19,9 @@ import threading
 import time
 
 from visfly_dist.aggregator.config import BACKENDS, endpoint_problem
-from visfly_dist.host import usable_cores
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
 from visfly_dist.errors import ConfigError
+from visfly_dist.host import usable_cores
 from visfly_dist.protocol.keys import check_chunk
 from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
 

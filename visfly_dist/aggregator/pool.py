@@ -45,8 +45,8 @@ import zenoh
 from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
 from visfly_dist.aggregator.lost_requests import LostRequests, Verdict
-from visfly_dist.host import usable_cores
 from visfly_dist.errors import LostRequestsError, NoWorkersError, ProtocolError, RemoteError
+from visfly_dist.host import usable_cores
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
 from visfly_dist.protocol.messages import Health
@@ -354,7 +354,7 @@ class WorkerPool:
         worker that answers shows that the network is up), and kept (not banned, not killed;
         ``None`` is returned) if it answers, unless :class:`.LostRequests` says it is at fault. Raises LostRequestsError when lost-but-alive requests reach
         ``PoolConfig.lost_request_limit`` in a row with none of their size answered in between.
-        """
+        """  # noqa: E501
         if unanswered_bytes and worker_id in self._local and self.probe(worker_id):  # reachable: no outage
             verdict = self._lost.lost_but_alive(worker_id, unanswered_bytes)
             if verdict is Verdict.FAIL:

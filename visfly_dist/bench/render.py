@@ -18,7 +18,7 @@ cpu_frames_per_s (in-process rows), where (in_process|worker), seconds``; one qu
 share of a step that renders 64x64 depth with raycast and queries (``q / (render + q)``); and the
 goal rows of issues 8 and 23 (:func:`goal_rows`): ``kind="goal", goal, value, target, met``; and the
 moving-obstacle rows of :mod:`visfly_dist.bench.moving` (``--moving N``, 20 by default).
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 

@@ -499,7 +499,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.bench import report
-    from visfly_dist.bench.common import machine_info, load_average
+    from visfly_dist.bench.common import load_average, machine_info
 
     def log(line: str) -> None:
         print(line, flush=True)

@@ -214,7 +214,7 @@ def compute_ratios(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
     for i, p in enumerate(peer_rows):
         n = p["drones"]
         for grad in (False, True) if i == 0 else (False,):
-            ours = _best(phys_rows, "sim_seconds_per_s", lambda r: r.get("agents") == n and bool(r.get("grad")) == grad)
+            ours = _best(phys_rows, "sim_seconds_per_s", lambda r, n=n, grad=grad: r.get("agents") == n and bool(r.get("grad")) == grad)
             label = f"physics sim-s/s, {n:,} drones" + (", ours with grad" if grad else "")
             note = (f"ours: {ours.get('mode')}" if ours else f"no physics row at {n} agents") + "; peer: pybullet 240 Hz"
             out[label] = _ratio(ours and ours["sim_seconds_per_s"], p["sim_seconds_per_s"],

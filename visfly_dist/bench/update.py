@@ -202,7 +202,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.bench import report
     from visfly_dist.errors import ConfigError
-
     from visfly_dist.training.config import BACKBONES
 
     if any(t < 1 for t in args.threads) or args.reps < 1 or args.backbone_batch < 1:

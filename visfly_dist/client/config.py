@@ -6,8 +6,8 @@ Derived values (``num_scenes``, the aggregator's configs) are computed here, in 
 
 from __future__ import annotations
 
-import math
 import dataclasses
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Mapping, Optional, Sequence
 

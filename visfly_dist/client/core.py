@@ -31,7 +31,7 @@ from visfly_dist.client.buffer_pool import BufferPool
 from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
 from visfly_dist.client.frame import SensorFrame
 from visfly_dist.client.noise import SensorNoise
-from visfly_dist.dynamics import QuadState, Quadrotor, load_airframe
+from visfly_dist.dynamics import Quadrotor, QuadState, load_airframe
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.cameras import CameraSpec
 
@@ -321,7 +321,7 @@ class TensorEnv:
         self.frame_timings = dict(obs.timings)
         rows = self._frame(obs)
         everyone = len(flight.ticket.agents) == self.num_envs
-        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)
+        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)  # noqa: E501
         t1 = time.perf_counter()
         group, full = flight.group, flight.full
         # with every agent moving (a plain step) the group and hold masks select everything: skip them

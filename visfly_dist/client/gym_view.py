@@ -11,9 +11,8 @@ Both share the wrapped env: closing a view closes it.
 
 from __future__ import annotations
 
-from typing import Any
-
 import secrets
+from typing import Any
 
 import gymnasium
 import numpy as np

@@ -21,7 +21,7 @@ baseline_focal / disp``; finally each pixel drops out to ``far`` (no return) wit
 Images are clamped to their sensor range after noise: RGB ``[0, 255]`` and rounded, depth
 ``[0, far]``, segmentation ``[0, 65535]`` and rounded. Salt and pepper use the ends of that range
 (depth: pepper 0 = invalid reading, salt ``far`` = no return).
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 

@@ -3,7 +3,15 @@
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.codec import PROTOCOL_VERSION, decode, encode, error_message
 from visfly_dist.protocol.messages import (
-    Health, LoadScene, SampleSpawn, ScenePoses, StepRequest, UnloadScene, parse_request, split_step_result, step_message,
+    Health,
+    LoadScene,
+    SampleSpawn,
+    ScenePoses,
+    StepRequest,
+    UnloadScene,
+    parse_request,
+    split_step_result,
+    step_message,
 )
 
 __all__ = [

@@ -9,7 +9,7 @@ Segmentation is uint16 object ids ``(1, H, W)``, 0 = nothing.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any, Mapping
 
 import numpy as np

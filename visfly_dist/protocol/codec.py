@@ -13,10 +13,9 @@ The key ``__nd__`` is reserved: a map holding it must be exactly that marker (th
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 import math
 import struct
+from typing import Any, Mapping
 
 import msgpack
 import numpy as np

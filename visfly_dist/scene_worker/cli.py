@@ -22,8 +22,8 @@ import signal
 import sys
 
 from visfly_dist.errors import ConfigError
-from visfly_dist.scene_worker.limits import WorkerLimits
 from visfly_dist.protocol.session import add_zenoh_config_argument
+from visfly_dist.scene_worker.limits import WorkerLimits
 
 ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(?P<port>\d{1,5})([?#].*)?$")
 
@@ -118,8 +118,8 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s worker %(process)d %(levelname)s %(message)s")
 
-    from visfly_dist.scene_worker.service import SceneWorker
     from visfly_dist.protocol.shm import release_segments
+    from visfly_dist.scene_worker.service import SceneWorker
 
     worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id, limits=limits,
                          threads=args.threads)

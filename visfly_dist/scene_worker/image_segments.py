@@ -1,4 +1,4 @@
-"""The worker's side of image segments: open the learner's ``/dev/shm`` file, prove it is the learner's,
+r"""The worker's side of image segments: open the learner's ``/dev/shm`` file, prove it is the learner's,
 and write a step's images into it (:mod:`visfly_dist.protocol.image_segment`).
 
 The worker never maps a segment: it renders into buffers of its own and ``pwrite``\ s each entry's
@@ -29,7 +29,11 @@ import numpy as np
 from visfly_dist.errors import ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
-    NONCE_BYTES, SEQ, SHM_DIR, SegmentTarget, block_bytes,
+    NONCE_BYTES,
+    SEQ,
+    SHM_DIR,
+    SegmentTarget,
+    block_bytes,
 )
 
 MAX_MAPPINGS = 8

@@ -48,12 +48,12 @@ from typing import Sequence
 
 import fcl
 import numpy as np
-from scipy.spatial import cKDTree
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
+from scipy.spatial import cKDTree
 
-from visfly_dist.host import usable_cores
 from visfly_dist.errors import ConfigError
+from visfly_dist.host import usable_cores
 from visfly_dist.scene_worker import render_native
 from visfly_dist.scene_worker.render_common import checked_time
 from visfly_dist.scenes.scene import Scene, SceneObject

@@ -115,7 +115,7 @@ class Renderer(abc.ABC):
             self._closed = True
             self._release()
 
-    def _release(self) -> None:
+    def _release(self) -> None:  # noqa: B027 - an optional hook: a backend without resources keeps it
         """Backend clean-up, called once by :meth:`close`."""
 
     def __enter__(self) -> "Renderer":

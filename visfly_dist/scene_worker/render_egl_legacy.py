@@ -32,10 +32,15 @@ import trimesh  # noqa: E402
 from visfly_dist.protocol.cameras import CameraSpec  # noqa: E402
 from visfly_dist.scene_worker.camera_math import camera_world_poses, gl_camera_pose, spheres_in_view  # noqa: E402
 from visfly_dist.scene_worker.gl_depth_seg import DepthSegPass  # noqa: E402
-from visfly_dist.scene_worker.render_egl import gl_context  # noqa: E402
 from visfly_dist.scene_worker.render_common import (  # noqa: E402
-    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id,
+    AMBIENT,
+    DRONE_RGB,
+    LIGHT_DIRECTION,
+    SKY_RGB,
+    Renderer,
+    drone_segmentation_id,
 )
+from visfly_dist.scene_worker.render_egl import gl_context  # noqa: E402
 from visfly_dist.scene_worker.shading import face_rgb  # noqa: E402
 from visfly_dist.scenes.scene import Scene  # noqa: E402
 

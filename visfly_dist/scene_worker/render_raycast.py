@@ -19,7 +19,7 @@ Both start rays on the near plane and cut them at the far plane. RGB is each fac
 is shaded from the hit data (triangle, barycentrics) in one function, :meth:`_shade`. Other drones
 are spheres intersected analytically (float64) after the Embree pass, the nearer hit winning: by
 the native tracer in the same call, or in numpy (:meth:`_overlay_drones`) with embreex.
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 
@@ -30,13 +30,18 @@ from typing import Sequence
 
 import numpy as np
 
-from visfly_dist.host import usable_cores
 from visfly_dist.errors import ConfigError
+from visfly_dist.host import usable_cores
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.scene_worker import render_native
 from visfly_dist.scene_worker.camera_math import camera_world_poses, pixel_rays, pixel_slopes, spheres_in_view
 from visfly_dist.scene_worker.render_common import (
-    AMBIENT, DRONE_RGB, LIGHT_DIRECTION, SKY_RGB, Renderer, drone_segmentation_id,
+    AMBIENT,
+    DRONE_RGB,
+    LIGHT_DIRECTION,
+    SKY_RGB,
+    Renderer,
+    drone_segmentation_id,
 )
 from visfly_dist.scene_worker.shading import SurfaceShader, face_rgb, shade_rgb
 from visfly_dist.scenes.scene import Scene
@@ -236,7 +241,7 @@ class RaycastRenderer(Renderer):
         n = len(plan.poses)
         out = {}
         for cam, b in zip(self.cameras, plan.batches):
-            flat = lambda a: None if a is None else a.reshape(n, cam.height * cam.width, *a.shape[3:])  # noqa: E731
+            flat = lambda a, cam=cam: None if a is None else a.reshape(n, cam.height * cam.width, *a.shape[3:])  # noqa: E731
             hits = _Hits(flat(b.depth), flat(b.prim), flat(b.uv), flat(b.seg), flat(b.drone), flat(b.light))
             out[cam.name] = self._image(cam, plan.poses, hits)
         return out

@@ -40,15 +40,21 @@ from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.codec import decode, encode, error_message
 from visfly_dist.protocol.image_segment import SegmentTarget
 from visfly_dist.protocol.messages import (
-    Health, LoadScene, Request, SampleSpawn, StepRequest, UnloadScene, parse_request,
+    Health,
+    LoadScene,
+    Request,
+    SampleSpawn,
+    StepRequest,
+    UnloadScene,
+    parse_request,
 )
 from visfly_dist.protocol.session import SessionConfig, client_of, open_session
 from visfly_dist.scene_worker.image_segments import SegmentMappings
-from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, gl_device_name, render_scenes_into
 from visfly_dist.scene_worker.limits import MIB, WorkerLimits, resident_bytes
 from visfly_dist.scene_worker.queries import query_scenes
-from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, prepare_scene
+from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, gl_device_name, render_scenes_into
 from visfly_dist.scene_worker.render_raycast import default_tracer
+from visfly_dist.scene_worker.state import PreparedScene, SceneTable, assemble_scene, prepare_scene
 from visfly_dist.scene_worker.timing import StageTimer
 from visfly_dist.scenes import sample_free_positions
 
@@ -537,6 +543,6 @@ class SceneWorker:
         """The ``health`` reply: identity, loaded and loading scenes, bounds, uptime, mapped image
         segments (name -> bytes) and cumulative stage timings."""
         return {"type": "health", "worker_id": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
-                "backend": self.backend, "tracer": self.tracer, "gl_device": self.gl_device, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),
+                "backend": self.backend, "tracer": self.tracer, "gl_device": self.gl_device, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),  # noqa: E501
                 "limits": self.limits.to_dict(), "memory_bytes": resident_bytes() or 0, "uptime_s": time.monotonic() - self._started,
                 "image_segments": self._segments.names(), "timings": self._timer.summary()}

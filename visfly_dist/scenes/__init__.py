@@ -27,7 +27,10 @@ _EXPORTS = {
     "save_scene": "visfly_dist.scenes.storage",
 }
 
-__all__ = sorted(_EXPORTS)
+__all__ = [  # literal, so that linters see the names of the TYPE_CHECKING imports as exported
+    "GENERATORS", "Scene", "SceneObject", "generate_scene", "load_scene", "resolve_source", "sample_free_positions", "save_scene",
+]
+assert sorted(__all__) == sorted(_EXPORTS)
 
 
 def __getattr__(name: str) -> Any:

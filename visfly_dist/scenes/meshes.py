@@ -7,7 +7,7 @@ the order of the node names (sorted, so the numbering is deterministic).
 Up axis: our world is z-up. glTF (glb/gltf) is y-up by specification, so by default those files are
 rotated +90 deg about x (glTF +y becomes our +z, glTF +z becomes our -y). obj, ply and stl carry no
 convention; they are taken as z-up by default. An OBJ file gives one object per ``o`` directive. ``up_axis="y"`` or ``"z"`` overrides the default.
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 

@@ -6,13 +6,12 @@ the same way builds identical meshes.
 
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
-import functools
-
 import numpy as np
-from scipy.spatial import ConvexHull
 import trimesh
+from scipy.spatial import ConvexHull
 
 from visfly_dist.errors import SceneError
 

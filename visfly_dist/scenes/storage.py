@@ -26,8 +26,8 @@ import trimesh
 
 from visfly_dist.errors import SceneError
 from visfly_dist.scenes.habitat import SCENE_INSTANCE_SUFFIX, load_habitat_scene
-from visfly_dist.scenes.motion import motion_from_dict
 from visfly_dist.scenes.meshes import MESH_SUFFIXES, load_mesh_file, node_meshes, read_trimesh_scene
+from visfly_dist.scenes.motion import motion_from_dict
 from visfly_dist.scenes.paths import PathLike, check_inside, normalize_roots
 from visfly_dist.scenes.scene import Scene, SceneObject
 

@@ -44,8 +44,16 @@ from visfly_dist.dynamics import QuadState
 from visfly_dist.dynamics.rotations import quat_to_rotmat
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import (
-    TARGET_DIM, angle_between, approach_speed, attitude_error, body_from_rotmat, metadata_point, obstacle_terms,
-    progress_speed, reward_problem, vec3_problem,
+    TARGET_DIM,
+    angle_between,
+    approach_speed,
+    attitude_error,
+    body_from_rotmat,
+    metadata_point,
+    obstacle_terms,
+    progress_speed,
+    reward_problem,
+    vec3_problem,
 )
 
 FORWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, offset=(0.2, 0.0, 0.0))

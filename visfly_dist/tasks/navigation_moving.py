@@ -13,7 +13,7 @@ moves them with) at the env's simulation time ``sim_time``: nothing extra travel
 
 "Nearest" is by distance from the drone to the obstacle's bounding sphere (centre distance minus
 its bounding radius). Spawns keep 0.5 m clear of every moving stone's whole swept path.
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ Termination: success at the time limit when the drone stayed within ``success_di
 of the target for the last ``hold_fraction`` (40 %) of the episode; failure on collision, or out
 of bounds (the scene's box, or farther than ``max_distance`` (3 m) from the target: it is lost).
 Truncation: the time limit (256 steps of 0.03 s) without success.
-"""
+"""  # noqa: E501
 
 from __future__ import annotations
 
@@ -39,7 +39,12 @@ from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import (
-    held_steps, metadata_point, reward_problem, to_body, vec3_problem, visfly_hover_reward,
+    held_steps,
+    metadata_point,
+    reward_problem,
+    to_body,
+    vec3_problem,
+    visfly_hover_reward,
 )
 from visfly_dist.tasks.navigation import FORWARD_DEPTH
 

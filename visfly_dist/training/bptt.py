@@ -33,10 +33,18 @@ from stable_baselines3.common.logger import configure
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.tasks import make_env
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.diff_common import (DiffActor, EpisodeLog, clip_and_step, decay_lr, detach_obs, load_params,
-                                              rollout_window, save_params)
-from visfly_dist.training.ppo import TrainResult, env_kwargs, write_config
+from visfly_dist.training.diff_common import (
+    DiffActor,
+    EpisodeLog,
+    clip_and_step,
+    decay_lr,
+    detach_obs,
+    load_params,
+    rollout_window,
+    save_params,
+)
 from visfly_dist.training.host_plan import check_device
+from visfly_dist.training.ppo import TrainResult, env_kwargs, write_config
 
 
 def build_diff_env(cfg: TrainConfig) -> DroneEnvBase:

@@ -200,7 +200,7 @@ class TrainConfig:
     def problems(self) -> list[str]:
         """Every problem with this (resolved) config, as messages (empty when valid)."""
         out: list[str] = []
-        for name, low in (("timesteps", 1), ("num_envs", 1), ("n_steps", 1), ("batch_size", 2), ("n_epochs", 1), ("checkpoint_every", 0), ("video_every", 0), ("threads", 1)):
+        for name, low in (("timesteps", 1), ("num_envs", 1), ("n_steps", 1), ("batch_size", 2), ("n_epochs", 1), ("checkpoint_every", 0), ("video_every", 0), ("threads", 1)):  # noqa: E501
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 out.append(f"{name}={value!r} must be an int >= {low}")

@@ -13,7 +13,9 @@ rate with its Wilson 95 % interval and how the episodes ended; in team tasks (``
 an episode is a team's, a success only when every member succeeds. The default seed (12345) differs
 from training's, so generated scenes (seeded from the env seed) and spawns are ones training never
 saw; an equal seed is refused unless ``--allow-training-seed``. A BPTT/SHAC checkpoint (``.npz``)
-is a deterministic actor: it is evaluated in the deterministic mode only. Scene files are not drawn from the
+is a deterministic actor: it is evaluated in the deterministic mode only. A recurrent checkpoint
+(``train --recurrent``, sb3-contrib RecurrentPPO, recognised from the zip) carries each agent's LSTM
+state from step to step, zeroed where its episode starts. Scene files are not drawn from the
 seed: hold some out of training and pass them with ``--scene-root DIR --set scenes='["held_out/*.glb"]'``.
 
 ``--video`` films agent 0 in the first mode: its first episode, or with ``--video-success`` its
@@ -64,9 +66,8 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.errors import ConfigError
     from visfly_dist.training.bptt import load_actor
     from visfly_dist.training.evaluation import build_eval_env, evaluate, find_run_config, load_policy
-    from visfly_dist.training.video import VideoRecorder
-
     from visfly_dist.training.host_plan import check_device
+    from visfly_dist.training.video import VideoRecorder
 
     if args.episodes < 1:
         raise ConfigError(f"--episodes {args.episodes} must be >= 1")

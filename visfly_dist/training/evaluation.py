@@ -157,7 +157,7 @@ def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[Any
     try:
         model = cls.load(checkpoint, env=env, device=device)
     except ValueError as exc:
-        raise ConfigError(f"checkpoint {checkpoint} does not fit this env ({exc}); evaluate with the training's task and --set settings") from exc
+        raise ConfigError(f"checkpoint {checkpoint} does not fit this env ({exc}); evaluate with the training's task and --set settings") from exc  # noqa: E501
     return model, env
 
 

@@ -49,7 +49,7 @@ OBSERVATION_DOCS: dict[str, str] = {
               "velocity, world frame, m/s [3:6]; attitude quaternion w, x, y, z rotating body (FLU: x forward, "
               "y left, z up) to world [6:10]; body rates, rad/s [10:13]"),
     "target": "unit direction to the goal (gap_crossing: the own target) in the body frame (FLU) [0:3], then its distance, m [3]",
-    "gap": "unit direction to the own gap point (centre of the gap, at the target's height) in the body frame (FLU) [0:3], then its distance, m [3]",
+    "gap": "unit direction to the own gap point (centre of the gap, at the target's height) in the body frame (FLU) [0:3], then its distance, m [3]",  # noqa: E501
     "path": ("the moving target's next K positions (now, then every future_dt s) minus the drone's position, "
              "in the body frame (FLU), m; one row per point"),
     "pad": ("the pad centre in the downward camera: u, v in [-1, 1] (u right, v down in the image) [0:2], then "
@@ -262,7 +262,7 @@ def input_specs(observation_space: spaces.Dict, cameras: Sequence[Any] = ()) -> 
             far = cam.far if cam is not None else float(np.max(space.high))
             doc = camera_doc(kind, far)
             if cam is not None:
-                doc += f"; {cam.hfov_deg:g} deg horizontal field of view, mounted at {list(cam.offset)} m (FLU), rotation wxyz {list(cam.rotation)}"
+                doc += f"; {cam.hfov_deg:g} deg horizontal field of view, mounted at {list(cam.offset)} m (FLU), rotation wxyz {list(cam.rotation)}"  # noqa: E501
         else:
             doc = OBSERVATION_DOCS.get(key, "see the task's get_observation")
         specs.append(dict(name=key, shape=list(space.shape), dtype=_dtype_name(space.dtype), doc=doc))
@@ -353,8 +353,8 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     from stable_baselines3 import PPO
 
     from visfly_dist.training.checkpoints import norm_path
-    from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint
     from visfly_dist.training.env_setup import env_kwargs
+    from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint
 
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file() or checkpoint.suffix != ".zip":

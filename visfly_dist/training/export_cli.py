@@ -11,6 +11,9 @@ deterministic (mean) action clipped to [-1, 1], the command of the task's contro
 says what each input holds, the control rate and the mapping of ``action`` to the physical command
 (see :mod:`visfly_dist.training.export` and docs/DEPLOY.md). The run's ``config.json`` (next to the
 checkpoint or one folder up) supplies the env settings; ``--set`` changes them as in training.
+A ``train --recurrent`` checkpoint (RecurrentPPO) is exported with its actor LSTM's state as
+``hidden_in`` / ``hidden_out`` ``(B, 2, layers, units)``: h then c; feed ``hidden_out`` back each step and
+zeros at an episode's start (the runner does: ``OnnxPolicy.act`` carries it, ``reset`` zeroes it).
 """
 
 from __future__ import annotations

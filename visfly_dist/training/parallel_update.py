@@ -28,11 +28,10 @@ from typing import Any, Callable
 import numpy as np
 import torch
 import torch.nn.functional as F
-from stable_baselines3.common.distributions import (DiagGaussianDistribution, Distribution,
-                                                    StateDependentNoiseDistribution)
+from gymnasium import spaces
+from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution, StateDependentNoiseDistribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.utils import explained_variance
-from gymnasium import spaces
 
 from visfly_dist.errors import ConfigError
 

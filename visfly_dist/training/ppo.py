@@ -39,10 +39,10 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
+from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
-from visfly_dist.host import usable_cores
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
 from visfly_dist.training.env_setup import env_kwargs, vector_keys  # noqa: F401 - env_kwargs also re-exported
 from visfly_dist.training.extractors import visfly_policy_kwargs

@@ -31,10 +31,19 @@ from stable_baselines3.common.logger import configure
 
 from visfly_dist.training.bptt import Progress, build_diff_env, first_observation, report_lost
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.diff_common import (Critic, DiffActor, EpisodeLog, Window, clip_and_step, decay_lr,
-                                              detach_obs, rollout_window, save_params)
-from visfly_dist.training.ppo import TrainResult, write_config
+from visfly_dist.training.diff_common import (
+    Critic,
+    DiffActor,
+    EpisodeLog,
+    Window,
+    clip_and_step,
+    decay_lr,
+    detach_obs,
+    rollout_window,
+    save_params,
+)
 from visfly_dist.training.host_plan import check_device
+from visfly_dist.training.ppo import TrainResult, write_config
 
 TARGET_ALPHA = 0.2
 """Share of the old target critic kept at each update (SHAC's ``target_critic_alpha``)."""
@@ -121,7 +130,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
                 # Actor: the window's loss, through the dynamics and the target critic's input.
                 weight = min(1.0, p.windows / VALUE_RAMP_WINDOWS)
                 window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma,
-                                        value=lambda o: scale_gradient(target(o), weight))
+                                        value=lambda o, weight=weight: scale_gradient(target(o), weight))
                 p.timesteps += window.steps * env.num_envs
                 actor_opt.zero_grad(set_to_none=True)
                 window.loss.backward()

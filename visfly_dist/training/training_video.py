@@ -87,6 +87,7 @@ class TrainingVideo:
         self._idle.set()
         self._thread: threading.Thread | None = None
         self._policy: Any = None
+        self._lstm_state: Any = None  # a recurrent policy's LSTM state during a film
         self._env: Any = None
         self._writer: Any = None
 
@@ -169,6 +170,9 @@ class TrainingVideo:
 
     def _act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         policy = self._policy
+        if hasattr(policy, "lstm_actor"):  # recurrent (train --recurrent): carry the LSTM state through the episode
+            action, self._lstm_state = policy.predict(obs, state=self._lstm_state, deterministic=True)
+            return action
         if hasattr(policy, "predict"):
             return policy.predict(obs, deterministic=True)[0]
         with torch.no_grad():
@@ -188,6 +192,7 @@ class TrainingVideo:
         else:
             self._policy.eval()
         recorder = VideoRecorder(env, agent=0)
+        self._lstm_state = None  # a recurrent policy's state: zeros at the episode's start
         limit = int(self.max_steps or env.config.max_episode_steps)
         env.seed(self.seed)
         obs = env.reset()
