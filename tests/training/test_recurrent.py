@@ -18,6 +18,7 @@ import pytest
 import torch
 from stable_baselines3.common.vec_env import VecMonitor
 
+from tests.training.test_export import run_runner
 from visfly_dist.cli import main
 from visfly_dist.errors import ConfigError
 from visfly_dist.tasks import make_env
@@ -25,8 +26,6 @@ from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.evaluation import evaluate, is_recurrent, is_recurrent_checkpoint, load_policy
 from visfly_dist.training.export import LstmCore, read_metadata
 from visfly_dist.training.ppo import RECURRENT_HIDDEN, env_kwargs
-
-from tests.training.test_export import run_runner
 
 LOCAL = ["--workers", "1", "--backend", "raycast"]
 
@@ -195,3 +194,23 @@ def test_bptt_and_shac_refuse_recurrent() -> None:
         with pytest.raises(ConfigError, match="recurrent=True is for PPO"):
             TrainConfig(task="hover", algo=algo, recurrent=True).resolved().validate()
     assert main(["train", "hover", "--algo", "bptt", "--recurrent", "--timesteps", "64", "--quiet"]) == 2
+
+
+def test_training_video_carries_the_lstm_state(trained: Path, tmp_path: Path) -> None:
+    from sb3_contrib import RecurrentPPO
+
+    from visfly_dist.training.export import ObsNormalization
+    from visfly_dist.training.training_video import TrainingVideo
+
+    model = RecurrentPPO.load(trained / "final.zip", device="cpu")
+    video = TrainingVideo("hover", tmp_path, every=100, env_settings={"seed": 0}, max_steps=8)
+    try:
+        assert video.maybe_record(100, model.policy, ObsNormalization.load(trained / "final.norm.npz"))
+        assert video.wait(timeout=300)
+    finally:
+        video.close()
+    assert not video.errors, video.errors
+    assert video.written == [tmp_path / "videos" / "step-100.gif"]
+    assert video._lstm_state is not None  # the film went through the recurrent branch, which carries the state
+    h, c = video._lstm_state
+    assert h.shape == (1, 1, RECURRENT_HIDDEN) and np.abs(h).max() > 0
