@@ -32,9 +32,10 @@ LOCAL = ["--workers", "1", "--backend", "raycast"]
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """``visfly-dist train hover --recurrent`` for 256 steps: the run folder."""
+    """``visfly-dist train hover --recurrent --algo ppo`` for 256 steps: the run folder (the tensor
+    trainer has no recurrent core: the run says so and trains in SB3's loop)."""
     run_dir = tmp_path_factory.mktemp("recurrent") / "run"
-    assert main(["train", "hover", "--recurrent", "--timesteps", "256", "--num-envs", "2", "--n-steps", "64",
+    assert main(["train", "hover", "--recurrent", "--algo", "ppo", "--timesteps", "256", "--num-envs", "2", "--n-steps", "64",
                  "--batch-size", "64", "--n-epochs", "2", "--checkpoint-every", "0", "--quiet", "--seed", "1",
                  "--out", str(run_dir), *LOCAL]) == 0
     return run_dir
@@ -48,7 +49,7 @@ def hover_env(seed: int, max_steps: int, n: int = 2) -> VecMonitor:
 
 def test_training_writes_a_recurrent_checkpoint(trained: Path) -> None:
     config = json.loads((trained / "config.json").read_text())
-    assert config["recurrent"] is True and config["algo"] == "sb3-ppo"
+    assert config["recurrent"] is True and config["algo"] == "sb3-ppo"  # --algo ppo fell back to SB3's loop
     assert is_recurrent_checkpoint(trained / "final.zip") and (trained / "final.norm.npz").is_file()
     rows = (trained / "success_curve.csv").read_text().splitlines()
     assert len(rows) >= 3  # a header and one row per rollout (2 rollouts of 128 steps)
