@@ -146,6 +146,10 @@ def test_tcp_training_survives_a_killed_worker_a_partition_and_a_router_restart(
         router = start_router(r, ep)
         wait_report(trainer, lambda m, s=rep["steps"]: m["steps"] >= s + 40 and serving(m) == {"wb", "wc"}, 60,
                     "training going on with both workers after the router restart")
+        # Loads whose replies the restart lost left no scene behind.
+        wait_report(trainer, lambda m: m["held"] is not None and all(
+            keys == sorted(k for w, k in m["served"] if w == wid) for wid, keys in m["held"].items()), 60,
+            "each worker holding exactly the scenes it serves after the router restart")
 
         assert stop_trainer(trainer) > 300
         stop_cleanly(wb, wc, router)
