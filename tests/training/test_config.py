@@ -59,7 +59,9 @@ def test_landing_trains_with_bptt_by_default_and_with_ppo_defaults_under_algo_pp
     assert TrainConfig(task="landing", lr=1e-3).resolved().lr == 1e-3  # given values win
     hover = TrainConfig(task="hover", algo="bptt").resolved()
     assert (hover.algo, hover.horizon, hover.lr, hover.num_envs) == ("bptt", 32, 3e-4, 16)
-    assert TrainConfig(task="navigation").resolved().algo == "ppo"
+    assert TrainConfig(task="navigation").resolved().algo == "ppo"          # the tensor PPO, measured there
+    assert TrainConfig(task="hover").resolved().algo == "sb3-ppo"           # not yet measured with it
+    assert TrainConfig(task="landing", algo="shac").resolved().num_envs == 8  # the gradient row applies to shac too
 
 
 def test_overlap_is_on_by_default_only_when_every_worker_is_remote():

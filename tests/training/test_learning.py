@@ -32,10 +32,12 @@ def hover_config(out: Path, **changes) -> TrainConfig:
 
 
 @pytest.mark.slow
-def test_ppo_beats_a_random_policy_on_hover(tmp_path: Path) -> None:
+@pytest.mark.parametrize("algo", ["sb3-ppo", "ppo"])
+def test_ppo_beats_a_random_policy_on_hover(tmp_path: Path, algo: str) -> None:
+    """Both PPO trainers (SB3's loop and the tensor PPO) learn to hover."""
     torch.manual_seed(0)
-    result = train(hover_config(tmp_path / "run", timesteps=20_000))
-    assert result.final_model.is_file() and not result.interrupted
+    result = train(hover_config(tmp_path / "run", timesteps=20_000, algo=algo))
+    assert result.final_model.is_file() and not result.interrupted and result.config.algo == algo
 
     env = build_eval_env("hover", 16, 7, hover_config(tmp_path), {}, {})
     try:

@@ -19,6 +19,15 @@ BACKBONES = ("visfly-cnn", "resnet-tiny", "mobilenet-tiny", "efficientnet-tiny")
 PPO_ALGOS = ("ppo", "sb3-ppo")
 ALGOS = (*PPO_ALGOS, "bptt", "shac")
 
+_BASE: dict[str, Any] = dict(algo="sb3-ppo", num_envs=16, timesteps=150_000, n_steps=128, batch_size=512,
+                             log_std_init=0.0, lr=3e-4, horizon=32, gradient={})
+"""Every task's defaults unless its row says otherwise (SB3's initial log std: 0)."""
+
+
+def _task(**changes: Any) -> dict[str, Any]:
+    return {**_BASE, **changes}
+
+
 TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # Budgets for about 5-30 minutes on a shared 2-core CPU host (docs/RESULTS.md has what each
     # reached): navigation measured at about 170 env steps/s with PPO updates included (16 envs,
@@ -33,46 +42,46 @@ TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # of the learner and the workers over twice the agents: 1.15x the env steps/s of the whole
     # loop, and it learned faster per env step: 0.95 deterministic success on unseen garages in
     # 16 min, against 0.90 for 16 x 128 (docs/RESULTS.md).
-    "navigation": dict(num_envs=32, timesteps=600_000, n_steps=64, batch_size=512, log_std_init=-1.0),
-    "hover": dict(num_envs=16, timesteps=100_000, n_steps=128, batch_size=512),
-    # Landing with PPO (``--algo ppo``): its spawn curriculum (tasks/landing.py) reached the full
-    # box at 186k of 300k steps (0.31). Landing trains with BPTT by default, see GRADIENT_DEFAULTS.
-    "landing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512, log_std_init=-1.0),
+    # The tensor PPO (``ppo``) reached 0.93 [0.86, 0.97] deterministic success on unseen garages at
+    # 600k steps with these settings, SB3's loop 0.95 [0.89, 0.98] (docs/RESULTS.md); interleaved on 2
+    # cores its whole loop ran at 1.02-1.30x SB3's (BENCHMARKS.md).
+    "navigation": _task(algo="ppo", num_envs=32, timesteps=600_000, n_steps=64, batch_size=512, log_std_init=-1.0),
+    "hover": _task(timesteps=100_000),
+    # Landing's reward is differentiable (tasks/landing.py): BPTT landed 1.00 of 100 episodes from
+    # the whole spawn box after 50k steps (``gradient``: the settings of bptt/shac runs), where PPO
+    # (``--algo sb3-ppo``; its spawn curriculum reached the full box at 186k of 300k steps) reached 0.31.
+    "landing": _task(algo="bptt", timesteps=300_000, log_std_init=-1.0,
+                     gradient=dict(num_envs=8, timesteps=100_000, horizon=16, lr=3e-3)),
     # Gap crossing (5 teams of 3, LV velocity actions, walls whose gap moves): 400k steps in 15 min
     # at about 450 env steps/s; 0.94 deterministic team success on unseen walls. Navigation at 400k
     # steps (0.80 deterministic) did no better than at 242k (0.83).
-    "gap_crossing": dict(num_envs=15, timesteps=400_000, n_steps=128, batch_size=480, log_std_init=-1.0),
-    "racing": dict(num_envs=16, timesteps=300_000, n_steps=128, batch_size=512),
-    "tracking": dict(num_envs=16, timesteps=250_000, n_steps=128, batch_size=512),
+    "gap_crossing": _task(num_envs=15, timesteps=400_000, batch_size=480, log_std_init=-1.0),
+    "racing": _task(timesteps=300_000),
+    "tracking": _task(timesteps=250_000),
 }
-"""Task-dependent defaults; tasks not listed here use ``FALLBACK_DEFAULTS``."""
+"""The one table of per-task defaults: the algorithm ``visfly-dist train TASK`` uses without
+``--algo`` (``ppo``, the tensor trainer, where it was measured to reach ``sb3-ppo``'s deterministic
+success at the same env steps, docs/RESULTS.md), the PPO sizes for a 2-core CPU host (the host
+plan scales them), and under ``gradient`` what changes for ``bptt``/``shac``. Tasks not listed use
+:func:`task_defaults`' base row. The CLI, ``make_env`` users (README), eval and the host plan read it."""
 
-FALLBACK_DEFAULTS: dict[str, Any] = dict(num_envs=16, timesteps=150_000, n_steps=128, batch_size=512)
 
-COMMON_DEFAULTS: dict[str, Any] = dict(log_std_init=0.0, lr=3e-4, horizon=32)
-"""Defaults of every task unless ``TASK_DEFAULTS`` names its own (SB3's initial log std: 0)."""
-
-DEFAULT_ALGOS: dict[str, str] = {
-    # Landing's reward is differentiable (tasks/landing.py): BPTT landed 1.00 of 100 episodes from
-    # the whole spawn box after 50k steps, where PPO reached 0.31 after 300k.
-    "landing": "bptt",
-}
-"""The algorithm ``visfly-dist train TASK`` uses without ``--algo``; :func:`default_ppo` for tasks not listed."""
-
-TENSOR_PPO_TASKS: frozenset[str] = frozenset()
-"""Tasks whose default PPO is the tensor trainer (``ppo``): it reached the SB3 trainer's deterministic
-success at the same env steps there (docs/RESULTS.md). The others keep ``sb3-ppo`` until measured."""
+def task_defaults(task: str, algo: str | None = None) -> dict[str, Any]:
+    """The defaults of ``task`` for ``algo`` (``None``: the task's own algorithm), ``gradient`` applied
+    for ``bptt``/``shac``; without the ``gradient`` entry."""
+    row = dict(TASK_DEFAULTS.get(task, _BASE))
+    gradient = row.pop("gradient")
+    if (algo or row["algo"]) in ("bptt", "shac"):
+        row.update(gradient)
+    if algo is not None:
+        row["algo"] = algo
+    return row
 
 
 def default_ppo(task: str) -> str:
-    """``ppo`` (the tensor trainer) where it is validated for ``task``, else ``sb3-ppo``."""
-    return "ppo" if task in TENSOR_PPO_TASKS else "sb3-ppo"
-
-
-GRADIENT_DEFAULTS: dict[str, dict[str, Any]] = {
-    "landing": dict(num_envs=8, timesteps=100_000, horizon=16, lr=3e-3),
-}
-"""Task defaults for ``bptt``/``shac`` runs, over ``TASK_DEFAULTS`` (which are PPO's)."""
+    """The task's PPO trainer: its default algorithm when that is a PPO, else ``sb3-ppo``."""
+    algo = TASK_DEFAULTS.get(task, _BASE)["algo"]
+    return algo if algo in PPO_ALGOS else "sb3-ppo"
 
 
 def parse_override(item: str) -> tuple[str, Any]:
@@ -140,9 +149,9 @@ class TrainConfig:
         scene_roots: folders scene files may be loaded from (``--scene-root``); ``scenes`` paths
             must lie under one of them.
         overrides: extra keyword arguments of ``make_env`` (``--set key=value``).
-        algo: ``ppo``, or ``bptt`` / ``shac`` (differentiable, through the dynamics; they use
+        algo: ``ppo`` (the tensor PPO), ``sb3-ppo`` (SB3's loop), or ``bptt`` / ``shac`` (differentiable, through the dynamics; they use
             ``lr``, ``gamma``, ``horizon``, and SHAC's critic ``gae_lambda``, ``n_epochs``, ``batch_size``);
-            ``None``: the task's (``DEFAULT_ALGOS``, else ``ppo``).
+            ``None``: the task's (``TASK_DEFAULTS``).
         horizon: BPTT/SHAC window length, steps (the graph is cut between windows; ``None``: 32 or the task's).
         recurrent: an LSTM between the extractor and the heads (sb3-contrib ``RecurrentPPO``; see
             :mod:`visfly_dist.training.ppo`); PPO only.
@@ -185,10 +194,8 @@ class TrainConfig:
 
     def resolved(self) -> "TrainConfig":
         """A copy with the algorithm and the task's defaults for it filled in, and ``out`` set."""
-        algo = self.algo if self.algo is not None else DEFAULT_ALGOS.get(self.task, default_ppo(self.task))
-        defaults = {**COMMON_DEFAULTS, **TASK_DEFAULTS.get(self.task, FALLBACK_DEFAULTS)}
-        if algo in ("bptt", "shac"):
-            defaults.update(GRADIENT_DEFAULTS.get(self.task, {}))
+        defaults = task_defaults(self.task, self.algo)
+        algo = defaults.pop("algo")
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         overlap = self.overlap if self.overlap is not None else (algo in PPO_ALGOS and self.workers == 0)
         cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),

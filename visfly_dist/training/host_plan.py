@@ -188,11 +188,11 @@ def apply_host_plan(cfg: "TrainConfig", facts: HostFacts | None = None, log: Any
     from dataclasses import replace
 
     from visfly_dist.tasks import task_class
-    from visfly_dist.training.config import COMMON_DEFAULTS, FALLBACK_DEFAULTS, TASK_DEFAULTS
+    from visfly_dist.training.config import task_defaults
 
     device = check_device(cfg.device)
     facts = facts or HostFacts.probe()
-    base = {**COMMON_DEFAULTS, **TASK_DEFAULTS.get(cfg.task, FALLBACK_DEFAULTS)}
+    base = task_defaults(cfg.task, cfg.algo)
     task_config = task_class(cfg.task).config_class()
     team = task_config.agents_per_scene if task_config.multi_agent else 1
     tensor = cfg.algo == "ppo"

@@ -75,7 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_config_argument(parser)
     parser.add_argument("--algo", choices=ALGOS, help="ppo (PPO on the tensor env, rollout on the learner's "
                         "device), sb3-ppo (stable-baselines3's loop), or bptt / shac through the dynamics "
-                        "(default: the task's, see visfly_dist.training.config.DEFAULT_ALGOS)")
+                        "(default: the task's, see visfly_dist.training.config.TASK_DEFAULTS)")
     parser.add_argument("--horizon", type=int, help="bptt/shac window, steps (default 32; per task)")
     parser.add_argument("--recurrent", action="store_true",
                         help="an LSTM between the extractor and the heads (sb3-contrib RecurrentPPO, SB3's loop; "
