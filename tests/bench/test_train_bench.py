@@ -44,7 +44,7 @@ def test_bench_train_delays_give_ratios_to_the_undelayed_run():
     for row in out["rows"]:
         check_row(row, 16)
     ratios = {r["ratio"]: r for r in out["ratios"]}
-    whole = ratios["delay 20 / 0 ms env_steps_per_s"]
+    whole = ratios[f"{base['algo']} delay 20 / 0 ms env_steps_per_s"]
     assert whole["value"] == pytest.approx(delayed["env_steps_per_s"] / base["env_steps_per_s"], rel=1e-2)
     assert whole["goal"] == ">= 0.9"
 
@@ -89,3 +89,15 @@ def test_bench_train_cli_is_registered():
     proc = subprocess.run([sys.executable, "-m", "visfly_dist.cli", "bench", "train", "--help"], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and "--delay-ms" in proc.stdout and "--timesteps" in proc.stdout
+
+
+def test_trainer_ratios_pair_each_tensor_run_with_the_nearest_sb3_run() -> None:
+    from visfly_dist.bench.train import trainer_ratios
+
+    def row(algo: str, value: float) -> dict:
+        return dict(algo=algo, delay_ms=None, env_steps_per_s=value, rollout_env_steps_per_s=value, learner_cpu_s_per_1k=value)
+
+    rows = [row("sb3-ppo", 1.0), row("ppo", 2.0), row("ppo", 6.0), row("sb3-ppo", 3.0)]   # A B B A
+    ratios = [r["value"] for r in trainer_ratios(rows) if r["ratio"] == "ppo / sb3-ppo env_steps_per_s"]
+    assert ratios == [2.0, 2.0]          # each ppo run against the sb3 run beside it, not the first one
+    assert trainer_ratios([row("ppo", 1.0)]) == []

@@ -283,7 +283,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
             remote.close()
         shutil.rmtree(out_dir, ignore_errors=True)
     plan = result.config.host_plan
-    row = _row(task, delay_ms, result.config.workers, result, clock, before, after)
+    row = _row(task, delay_ms, count if remote is not None else result.config.workers, result, clock, before, after)
     return {**row, "algo": result.config.algo, "device": result.config.device, "num_envs": result.config.num_envs,
             "worker_threads": result.config.worker_threads, "overlap": bool(result.config.overlap),
             "host_plan": plan.get("reasons", {})}
@@ -360,12 +360,19 @@ def delay_ratios(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
 
 
 def trainer_ratios(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """``ppo`` over ``sb3-ppo`` at the same delay: env-steps/s (whole loop, rollout) and learner CPU."""
+    """``ppo`` over ``sb3-ppo`` at the same delay: env-steps/s (whole loop, rollout) and learner CPU.
+
+    Each ``ppo`` run is paired with the ``sb3-ppo`` run nearest to it in the run order (the one
+    before it on a tie), so an interleaved order (``--algo sb3-ppo ppo ppo sb3-ppo``) pairs runs
+    made under the same outside load."""
     out = []
-    for r in (r for r in rows if r["algo"] == "ppo"):
-        base = next((b for b in rows if b["algo"] == "sb3-ppo" and b["delay_ms"] == r["delay_ms"]), None)
-        if base is None:
+    for i, r in enumerate(rows):
+        if r["algo"] != "ppo":
             continue
+        bases = [j for j, b in enumerate(rows) if b["algo"] == "sb3-ppo" and b["delay_ms"] == r["delay_ms"]]
+        if not bases:
+            continue
+        base = rows[min(bases, key=lambda j: (abs(j - i), j > i))]
         for fig, goal in (("env_steps_per_s", ">= 1.5"), ("rollout_env_steps_per_s", ""), ("learner_cpu_s_per_1k", "<= 0.25")):
             if r[fig] and base[fig]:
                 out.append({"ratio": f"ppo / sb3-ppo {fig}", "value": round(r[fig] / base[fig], 3), "goal": goal})
