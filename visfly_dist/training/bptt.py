@@ -44,7 +44,7 @@ from visfly_dist.training.diff_common import (
     save_params,
 )
 from visfly_dist.training.host_plan import check_device
-from visfly_dist.training.ppo import TrainResult, env_kwargs, write_config
+from visfly_dist.training.run import TrainResult, env_kwargs, write_config
 
 
 def build_diff_env(cfg: TrainConfig) -> DroneEnvBase:

@@ -31,7 +31,7 @@ from visfly_dist.tasks import make_env, task_class
 from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
 from visfly_dist.training.checkpoints import load_normalization, norm_path
 from visfly_dist.training.config import TrainConfig
-from visfly_dist.training.env_setup import env_kwargs
+from visfly_dist.training.run import env_kwargs
 from visfly_dist.training.video import VideoRecorder
 
 

@@ -353,8 +353,8 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     from stable_baselines3 import PPO
 
     from visfly_dist.training.checkpoints import norm_path
-    from visfly_dist.training.env_setup import env_kwargs
     from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint
+    from visfly_dist.training.run import env_kwargs
 
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file() or checkpoint.suffix != ".zip":

@@ -28,11 +28,10 @@ The same pieces serve your own scripts: ``build_env(cfg)`` gives the wrapped Vec
 
 from __future__ import annotations
 
-import json
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from stable_baselines3 import PPO
@@ -44,26 +43,13 @@ from visfly_dist.tasks import make_env
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
-from visfly_dist.training.env_setup import env_kwargs, vector_keys  # noqa: F401 - env_kwargs also re-exported
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.host_plan import apply_host_plan
 from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
+from visfly_dist.training.run import Checkpoints, TrainResult, env_kwargs, vector_keys, write_config  # noqa: F401 - re-exported
 from visfly_dist.training.tensor_ppo import TensorPPO
 from visfly_dist.training.training_video import VideoCallback, video_for
-
-
-@dataclass
-class TrainResult:
-    """What a finished (or interrupted) run produced."""
-
-    run_dir: Path
-    final_model: Path
-    timesteps: int
-    interrupted: bool
-    summary: dict[str, float]
-    config: TrainConfig | None = None
-    """The resolved configuration the run trained with (host plan included)."""
 
 
 def build_env(cfg: TrainConfig) -> VecEnv:
@@ -142,13 +128,6 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     return model
 
 
-def write_config(cfg: TrainConfig, run_dir: Path) -> None:
-    """Print the full config and save it as ``config.json``."""
-    text = json.dumps(cfg.to_dict(), indent=2, default=str)
-    print(f"visfly-dist train {cfg.task}: run folder {run_dir}\n{text}", flush=True)
-    (run_dir / "config.json").write_text(text + "\n")
-
-
 def train(cfg: TrainConfig) -> TrainResult:
     """Run PPO on ``cfg.task`` (``algo="ppo"``: :class:`TensorPPO`; ``"sb3-ppo"``: SB3's loop);
     Ctrl-C stops early, saves ``final.zip`` and closes the env.
@@ -211,16 +190,3 @@ def train(cfg: TrainConfig) -> TrainResult:
         flush=True,
     )
     return result
-
-
-class Checkpoints:
-    """``save(folder / "step_<n>.zip")`` each time a rollout ends ``every`` or more env steps after the last one."""
-
-    def __init__(self, folder: Path, every: int, save: Callable[[Path], Any]) -> None:
-        self.folder, self.every, self.save = Path(folder), every, save
-        self._next = every
-
-    def __call__(self, num_timesteps: int) -> None:
-        if self.every and num_timesteps >= self._next:
-            self.save(self.folder / f"step_{num_timesteps}.zip")
-            self._next = (num_timesteps // self.every + 1) * self.every

@@ -43,7 +43,7 @@ from visfly_dist.training.diff_common import (
     save_params,
 )
 from visfly_dist.training.host_plan import check_device
-from visfly_dist.training.ppo import TrainResult, write_config
+from visfly_dist.training.run import TrainResult, write_config
 
 TARGET_ALPHA = 0.2
 """Share of the old target critic kept at each update (SHAC's ``target_critic_alpha``)."""

@@ -102,7 +102,7 @@ class Normalizer:
     """
 
     def __init__(self, space: spaces.Dict, num_envs: int, gamma: float, device: torch.device, enabled: bool = True) -> None:
-        from visfly_dist.training.env_setup import vector_keys
+        from visfly_dist.training.run import vector_keys
 
         self.keys = vector_keys(space) if enabled else []
         self.enabled = enabled

@@ -248,6 +248,6 @@ def video_for(cfg: Any) -> TrainingVideo | None:
     every = int(getattr(cfg, "video_every", 0) or 0)
     if every <= 0:
         return None
-    from visfly_dist.training.env_setup import env_kwargs
+    from visfly_dist.training.run import env_kwargs
 
     return TrainingVideo(cfg.task, cfg.out, every, env_kwargs(cfg), seed=cfg.seed + 12345)

@@ -1,14 +1,16 @@
-"""How a training run builds its env: ``make_env``'s keyword arguments and the entries VecNormalize scales.
+"""The plumbing every trainer shares: the env's keyword arguments, the run folder's config, the result.
 
 Shared by the SB3 loop (``ppo``), the tensor PPO (``tensor_ppo``), BPTT/SHAC, evaluation, export and
-the training video; it imports none of them, so none of them needs another for these (no import
-cycle through ``ppo``).
+the training video; it imports none of them, so each trainer reads top to bottom on it and none
+needs another (no import cycle through ``ppo``).
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-from typing import Any
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 from gymnasium import spaces
@@ -52,3 +54,36 @@ def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
 def vector_keys(space: spaces.Dict) -> list[str]:
     """Float entries that are not images: the ones VecNormalize normalises."""
     return [k for k, s in space.spaces.items() if isinstance(s, spaces.Box) and len(s.shape) < 3 and np.issubdtype(s.dtype, np.floating)]
+
+
+@dataclass
+class TrainResult:
+    """What a finished (or interrupted) run produced."""
+
+    run_dir: Path
+    final_model: Path
+    timesteps: int
+    interrupted: bool
+    summary: dict[str, float]
+    config: TrainConfig | None = None
+    """The resolved configuration the run trained with (host plan included)."""
+
+
+def write_config(cfg: TrainConfig, run_dir: Path) -> None:
+    """Print the full config and save it as ``config.json``."""
+    text = json.dumps(cfg.to_dict(), indent=2, default=str)
+    print(f"visfly-dist train {cfg.task}: run folder {run_dir}\n{text}", flush=True)
+    (run_dir / "config.json").write_text(text + "\n")
+
+
+class Checkpoints:
+    """``save(folder / "step_<n>.zip")`` each time a rollout ends ``every`` or more env steps after the last one."""
+
+    def __init__(self, folder: Path, every: int, save: Callable[[Path], Any]) -> None:
+        self.folder, self.every, self.save = Path(folder), every, save
+        self._next = every
+
+    def __call__(self, num_timesteps: int) -> None:
+        if self.every and num_timesteps >= self._next:
+            self.save(self.folder / f"step_{num_timesteps}.zip")
+            self._next = (num_timesteps // self.every + 1) * self.every
