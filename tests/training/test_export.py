@@ -122,9 +122,8 @@ def test_metadata_documents_inputs_rate_and_command(recorded: dict) -> None:
     assert f"controller {meta['controller']}" in described and "command:" in described
 
 
+@pytest.mark.parametrize("recorded", ["navigation"], indirect=True)   # one task is enough
 def test_export_refuses_another_tasks_checkpoint(recorded: dict, tmp_path: Path) -> None:
-    if recorded["task"] != "navigation":
-        pytest.skip("one task is enough")
     with pytest.raises(ConfigError, match="observes"):
         from visfly_dist.training.export import export_checkpoint
 
