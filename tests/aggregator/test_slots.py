@@ -108,3 +108,16 @@ def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key_or_a_mov
     assert table.revision == failed  # not its move any more: nothing changed
     table.orphan_worker("a")
     assert table.revision > failed
+
+
+def test_a_rejoining_worker_gets_its_share_while_swaps_are_in_flight_and_no_slot_moves_twice():
+    pool = FakePool("a")
+    table = SlotTable([f"s{i}" for i in range(6)], agents_per_scene=1)
+    _carry_out(table, table.plan_placement(pool.live, pool.generations))
+    swaps = [table.plan_swap(i, f"next{i}", pool.generations) for i in (4, 5)]   # two swap loads in flight on a
+    assert all(m is not None and m.worker == "a" for m in swaps)
+    pool.join("b")
+    plan = table.plan_rebalance(pool.live, pool.generations)
+    assert len(plan) == 3 and {s for s, _ in plan}.isdisjoint({4, 5})           # swapping slots stay put
+    assert table.plan_rebalance(pool.live, pool.generations) == []              # pending moves count on b
+    assert table.loads(pool.live) == {"a": 3, "b": 3}

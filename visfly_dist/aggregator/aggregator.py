@@ -605,7 +605,9 @@ class Aggregator:
             gens = {w: self._pool.generation(w) for w in live}
         placeable = self._placeable(live)
         plan = self.table.plan_placement(placeable, gens)
-        if not plan and not self._background and not self.table.orphans():
+        if not plan and not self.table.orphans():
+            # also while loads run (navigation's swaps keep some running): a move in flight counts on
+            # its target and its slot is not moved again, so a rejoining worker gets its share now
             plan = self.table.plan_rebalance(placeable, gens)
         self._send_loads(plan)
         busy = plan or self._background or self._pending_switch or len(placeable) < len(live)
