@@ -31,7 +31,6 @@ from __future__ import annotations
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import torch
 from stable_baselines3 import PPO
@@ -65,31 +64,6 @@ RECURRENT_HIDDEN = 128
 """LSTM units of a ``--recurrent`` policy's actor (and, separately, its critic)."""
 
 
-def build_recurrent_model(cfg: TrainConfig, env: VecEnv) -> Any:
-    """sb3-contrib ``RecurrentPPO`` (``MultiInputLstmPolicy``): the extractor, an LSTM, the 64-64 heads."""
-    from sb3_contrib import RecurrentPPO
-
-    model = RecurrentPPO(
-        "MultiInputLstmPolicy",
-        env,
-        learning_rate=cfg.lr,
-        n_steps=cfg.n_steps,
-        batch_size=cfg.batch_size,
-        n_epochs=cfg.n_epochs,
-        gamma=cfg.gamma,
-        gae_lambda=cfg.gae_lambda,
-        ent_coef=cfg.ent_coef,
-        clip_range=cfg.clip_range,
-        policy_kwargs={**visfly_policy_kwargs(cfg.backbone), "log_std_init": cfg.log_std_init,
-                       "lstm_hidden_size": RECURRENT_HIDDEN},
-        seed=cfg.seed,
-        device=cfg.device,
-        verbose=0,
-    )
-    model.set_logger(configure(str(cfg.out), ["tensorboard", "csv"]))
-    return model
-
-
 def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
 
@@ -97,18 +71,22 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     hyperparameters for :class:`TensorPPO` (and saves the ``.zip``). For ``"sb3-ppo"`` it is
     :class:`UpdateThreadsPPO` (plain PPO whose update uses every core while the workers are idle),
     or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
-    With ``cfg.recurrent``: :func:`build_recurrent_model`.
+    With ``cfg.recurrent`` it is sb3-contrib's ``RecurrentPPO`` (``MultiInputLstmPolicy``): the
+    extractor, an LSTM of ``RECURRENT_HIDDEN`` units, the 64-64 heads.
     """
+    policy, lstm = "MultiInputPolicy", {}
     if cfg.recurrent:
-        return build_recurrent_model(cfg, env)
-    if cfg.algo == "ppo":
+        from sb3_contrib import RecurrentPPO
+
+        cls, extra, policy, lstm = RecurrentPPO, {}, "MultiInputLstmPolicy", {"lstm_hidden_size": RECURRENT_HIDDEN}
+    elif cfg.algo == "ppo":
         cls, extra = PPO, {}
     elif cfg.overlap:
         cls, extra = OverlappedPPO, {}
     else:
         cls, extra = UpdateThreadsPPO, {"update_threads": cfg.update_threads}
     model = cls(
-        "MultiInputPolicy",
+        policy,
         env,
         learning_rate=cfg.lr,
         n_steps=cfg.n_steps,
@@ -118,7 +96,7 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
         gae_lambda=cfg.gae_lambda,
         ent_coef=cfg.ent_coef,
         clip_range=cfg.clip_range,
-        policy_kwargs={**visfly_policy_kwargs(cfg.backbone), "log_std_init": cfg.log_std_init},
+        policy_kwargs={**visfly_policy_kwargs(cfg.backbone), "log_std_init": cfg.log_std_init, **lstm},
         seed=cfg.seed,
         device=cfg.device,
         verbose=0,
