@@ -24,8 +24,9 @@ def navigation(facts: HostFacts, device: str = "cpu", **given) -> object:
 
 
 def test_a_two_core_laptop_keeps_the_sizes_the_task_was_tuned_with() -> None:
-    plan = navigation(LAPTOP)
+    plan = navigation(LAPTOP, timesteps=600_000)
     assert (plan.num_envs, plan.batch_size, plan.workers, plan.worker_threads, plan.overlap) == (32, 512, 2, 1, False)
+    assert plan.video_every == 0   # no core to spare for films
 
 
 @pytest.mark.parametrize("cores", [1, 2, 3, 4, 6, 8, 12, 16, 32, 64, 128])
@@ -35,20 +36,23 @@ def test_learner_workers_and_their_threads_never_ask_for_more_cores_than_the_hos
     assert plan.workers * plan.worker_threads + learner <= max(cores, plan.workers)
     assert plan.worker_threads >= 1 and plan.workers >= 1
     assert plan.batch_size <= 64 * plan.num_envs and plan.num_envs % 32 == 0
-    assert set(plan.reasons) == {"device", "workers", "worker_threads", "num_envs", "batch_size", "overlap"}
+    assert set(plan.reasons) == {"device", "workers", "worker_threads", "num_envs", "batch_size", "overlap", "video_every"}
 
 
 def test_a_gpu_workstation_gets_more_agents_larger_minibatches_and_overlap() -> None:
-    plan = navigation(WORKSTATION, "cuda")
+    plan = navigation(WORKSTATION, "cuda", timesteps=600_000)
     assert plan.workers == 4 and plan.worker_threads == 3      # 4 x 3 + 2 for the learner = 14 of 16 cores
+    assert plan.video_every == 60_000                          # a film every tenth of the run
     assert plan.num_envs == 32 * 8 and plan.batch_size == 512 * 8 and plan.overlap
     assert "NVIDIA H200" in plan.reasons["device"]
     assert any("host plan: num_envs = 256" in line for line in plan.lines())
 
 
 def test_given_values_are_kept_and_said_so() -> None:
-    plan = navigation(WORKSTATION, "cuda", num_envs=64, workers=14, worker_threads=1, overlap=False, batch_size=128)
+    plan = navigation(WORKSTATION, "cuda", num_envs=64, workers=14, worker_threads=1, overlap=False, batch_size=128,
+                      video_every=0)
     assert (plan.num_envs, plan.workers, plan.worker_threads, plan.overlap, plan.batch_size) == (64, 14, 1, False, 128)
+    assert plan.video_every == 0
     assert all(why == "given" for name, why in plan.reasons.items() if name != "device")
     assert navigation(WORKSTATION, "cuda", num_envs=64).batch_size == 1024  # the minibatch follows given agents
 
@@ -80,7 +84,8 @@ def test_apply_host_plan_fills_the_config_and_records_the_plan() -> None:
     lines: list[str] = []
     cfg = apply_host_plan(TrainConfig(task="navigation", algo="ppo"), LAPTOP, log=lines.append)
     assert (cfg.device, cfg.num_envs, cfg.workers, cfg.worker_threads, cfg.batch_size) == ("cpu", 32, 2, 1, 512)
-    assert len(lines) == 6 and all(line.startswith("host plan: ") for line in lines)
+    assert len(lines) == 7 and all(line.startswith("host plan: ") for line in lines)
+    assert cfg.video_every == 0
     recorded = TrainConfig.from_dict(json.loads(json.dumps(cfg.resolved().to_dict())))
     assert recorded.host_plan["facts"]["cores"] == 2 and recorded.host_plan["num_envs"] == 32
     sb3 = apply_host_plan(TrainConfig(task="navigation", algo="sb3-ppo", workers=0, connect=("tcp/127.0.0.1:1",)),

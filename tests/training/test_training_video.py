@@ -74,6 +74,6 @@ def test_video_every_is_off_by_default_and_validated() -> None:
     from visfly_dist.errors import ConfigError
     from visfly_dist.training.config import TrainConfig
 
-    assert TrainConfig(task="hover").video_every == 0
+    assert TrainConfig(task="hover").resolved().video_every == 0   # without a host plan
     with pytest.raises(ConfigError, match="video_every"):
         TrainConfig(task="hover", video_every=-1).resolved().validate()

@@ -135,7 +135,8 @@ class TrainConfig:
             are clipped to [-1, 1]); ``None``: the task's default.
         checkpoint_every: save a checkpoint every this many env steps (0: only the final model).
         video_every: film one deterministic episode every this many env steps, in the background
-            (``RUN/videos/step-<n>.gif`` and TensorBoard; :mod:`visfly_dist.training.training_video`); 0: never.
+            (``RUN/videos/step-<n>.gif`` and TensorBoard; :mod:`visfly_dist.training.training_video`); 0: never;
+            ``None``: the host plan's (every tenth of the run from 8 cores, else never).
         backbone: image backbone of the extractor.
         normalize: running normalisation of vector observations and of rewards (VecNormalize).
         progress: print progress lines.
@@ -180,7 +181,7 @@ class TrainConfig:
     clip_range: float = 0.2
     log_std_init: float | None = None
     checkpoint_every: int = 50_000
-    video_every: int = 0
+    video_every: int | None = None
     backbone: str = "visfly-cnn"
     normalize: bool = True
     progress: bool = True
@@ -198,8 +199,10 @@ class TrainConfig:
         algo = defaults.pop("algo")
         filled = {k: v for k, v in defaults.items() if getattr(self, k) is None}
         overlap = self.overlap if self.overlap is not None else (algo in PPO_ALGOS and self.workers == 0)
+        video_every = 0 if self.video_every is None else self.video_every
         cfg = replace(self, connect=tuple(self.connect), scene_roots=tuple(self.scene_roots),
-                      overrides=dict(self.overrides), algo=algo, overlap=overlap, host_plan=dict(self.host_plan), **filled)
+                      overrides=dict(self.overrides), algo=algo, overlap=overlap, video_every=video_every,
+                      host_plan=dict(self.host_plan), **filled)
         if cfg.out is None:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg

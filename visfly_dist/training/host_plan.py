@@ -24,6 +24,8 @@ The rules:
   the same number of minibatches over a larger batch (fewer, larger updates per env step).
 * **Overlap** (two agent groups through ``send``/``recv``): on from 4 cores, where the learner has
   a core of its own; and whenever every worker is remote.
+* **Training videos**: one filmed every tenth of the run from 8 cores (a background thread with its
+  own small env); off below, where it would take a core from training.
 """
 
 from __future__ import annotations
@@ -39,6 +41,8 @@ if TYPE_CHECKING:
 
 MAX_SCALE = 64
 MAX_WORKERS = 8
+VIDEO_MIN_CORES = 8
+"""Training videos are filmed (in the background) by default from this many usable cores."""
 IMAGE_BYTES = 64 * 64 * 4
 """A 64x64 float depth image: the rollout's bytes per agent and step are about this."""
 
@@ -75,6 +79,7 @@ class HostPlan:
     worker_threads: int
     overlap: bool
     batch_size: int
+    video_every: int = 0
     reasons: dict[str, str] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
@@ -111,7 +116,7 @@ def check_device(device: str) -> str:
 def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_steps: int, *,
               num_envs: int | None = None, workers: int | None = None, worker_threads: int | None = None,
               overlap: bool | None = None, batch_size: int | None = None, remote_only: bool = False,
-              team: int = 1) -> HostPlan:
+              team: int = 1, timesteps: int = 0, video_every: int | None = None) -> HostPlan:
     """Size a run for ``facts`` (pure: the same facts give the same plan).
 
     Args:
@@ -119,7 +124,8 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_
         device: the learner's device, already checked (``cpu``/``cuda...``).
         base_envs, base_batch: the task's agents and minibatch for a 2-core CPU host.
         n_steps: the rollout length (kept).
-        num_envs, workers, worker_threads, overlap, batch_size: given values, kept as they are.
+        num_envs, workers, worker_threads, overlap, batch_size, video_every: given values, kept as they are.
+        timesteps: the run's budget (a film every tenth of it, where cores allow).
         remote_only: every worker is remote (``--workers 0``).
         team: agents per team (the agent count stays a multiple of it).
     """
@@ -165,7 +171,13 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_
                               f"{cores} cores: learner and workers share them; overlapping would make them wait on each other")
     else:
         reasons["overlap"] = "given"
-    return HostPlan(facts, device, num_envs, workers, worker_threads, overlap, batch_size, reasons)
+    if video_every is None:
+        video_every = timesteps // 10 if cores >= VIDEO_MIN_CORES else 0
+        reasons["video_every"] = (f"{cores} cores: a film every tenth of the run, on a core of its own" if video_every else
+                                  f"{cores} cores: no core to spare for films (--video-every STEPS turns them on)")
+    else:
+        reasons["video_every"] = "given"
+    return HostPlan(facts, device, num_envs, workers, worker_threads, overlap, batch_size, video_every, reasons)
 
 
 def _power_of_two_at_most(n: int) -> int:
@@ -199,10 +211,12 @@ def apply_host_plan(cfg: "TrainConfig", facts: HostFacts | None = None, log: Any
     plan = plan_host(facts, device, base["num_envs"], base["batch_size"], cfg.n_steps or base["n_steps"],
                      num_envs=cfg.num_envs, workers=cfg.workers, worker_threads=cfg.worker_threads,
                      overlap=cfg.overlap if tensor else False, batch_size=cfg.batch_size,
-                     remote_only=cfg.workers == 0, team=team)
+                     remote_only=cfg.workers == 0, team=team, timesteps=cfg.timesteps or base["timesteps"],
+                     video_every=cfg.video_every)
     if not tensor:
         plan.reasons.pop("overlap", None)
     for line in plan.lines():
         log(line)
     return replace(cfg, device=device, num_envs=plan.num_envs, workers=plan.workers, worker_threads=plan.worker_threads,
-                   batch_size=plan.batch_size, overlap=plan.overlap if tensor else cfg.overlap, host_plan=plan.to_dict())
+                   batch_size=plan.batch_size, overlap=plan.overlap if tensor else cfg.overlap, video_every=plan.video_every,
+                   host_plan=plan.to_dict())

@@ -59,9 +59,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ent-coef", type=float, default=0.0, help="entropy bonus (default 0)")
     parser.add_argument("--log-std-init", type=float, help="initial log std of the action noise (default: per task)")
     parser.add_argument("--checkpoint-every", type=int, default=50_000, metavar="STEPS", help="0: only the final model")
-    parser.add_argument("--video-every", type=int, default=0, metavar="STEPS",
+    parser.add_argument("--video-every", type=int, default=None, metavar="STEPS",
                         help="film a deterministic episode every STEPS env steps in the background (videos/step-<n>.gif "
-                             "and TensorBoard; default 0: off, as it takes CPU from training)")
+                             "and TensorBoard; 0: off; default: the host plan's, every tenth of the run from 8 cores, "
+                             "off below, as it takes CPU from training)")
     parser.add_argument("--backbone", choices=BACKBONES, default="visfly-cnn", help="image backbone")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise vector observations and rewards")
     parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
