@@ -214,8 +214,10 @@ class DeployedActor(nn.Module):
         self.normalized = [k for k in self.keys if k in norm.mean]
         self.clip = float(norm.clip)
         for i, k in enumerate(self.normalized):
-            self.register_buffer(f"mean_{i}", torch.as_tensor(norm.mean[k], dtype=torch.float32))
-            self.register_buffer(f"std_{i}", torch.as_tensor(np.sqrt(norm.var[k] + norm.epsilon), dtype=torch.float32))
+            # float64, as VecNormalize computes: in float32 a large raw value (e.g. a far moving
+            # obstacle) minus its mean loses the digits that the 1e-5 agreement needs
+            self.register_buffer(f"mean_{i}", torch.as_tensor(norm.mean[k], dtype=torch.float64))
+            self.register_buffer(f"std_{i}", torch.as_tensor(np.sqrt(norm.var[k] + norm.epsilon), dtype=torch.float64))
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         obs: dict[str, torch.Tensor] = {}
@@ -223,7 +225,7 @@ class DeployedActor(nn.Module):
             x = x.float()
             if key in self.normalized:
                 i = self.normalized.index(key)
-                x = ((x - getattr(self, f"mean_{i}")) / getattr(self, f"std_{i}")).clamp(-self.clip, self.clip)
+                x = ((x.double() - getattr(self, f"mean_{i}")) / getattr(self, f"std_{i}")).clamp(-self.clip, self.clip).float()
             obs[key] = x
         features = self.extractor(obs)
         hidden = None
