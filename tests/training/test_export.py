@@ -20,7 +20,6 @@ import pytest
 import torch
 from torch import nn
 
-from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.cli import main
 from visfly_dist.errors import ConfigError
 from visfly_dist.training.checkpoints import save_checkpoint
