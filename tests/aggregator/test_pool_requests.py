@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import queue
+import time
 
 import zenoh
 
@@ -31,11 +32,15 @@ def test_a_request_is_done_at_its_reply_though_the_worker_holds_the_query():
         with client_session(endpoint) as session:
             queryable = session.declare_queryable(keys.worker_rpc(RUN, "w0"),
                                                   zenoh.handlers.Callback(answer_but_hold, indirect=False))
-            for _ in range(50):  # until the queryable is seen (before that, a get finds no one at once)
+            # Until the queryable is seen: before that, a get finds no one and ends at once with no
+            # reply, so tries are bounded by time (discovery can take seconds on a loaded host), not count.
+            deadline = time.monotonic() + 30.0
+            while True:
                 (pending,) = pool.send([("w0", Health().to_message())], timeout_s=5.0)
                 pool.wait_any([[pending]], 2.0)
-                if pending.raw is not None:
+                if pending.raw is not None or time.monotonic() > deadline:
                     break
+                time.sleep(0.05)
             assert pending.done()
             reply = pool.result(pending)
             assert reply.message == {"version": PROTOCOL_VERSION, "type": "echo", "got": "health"}, reply
