@@ -9,6 +9,7 @@ the whole wrapper; plain arrays are enough to rebuild it around a fresh env.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -83,17 +84,27 @@ def save_checkpoint(model: BaseAlgorithm, path: Path) -> Path:
     return path
 
 
+class Checkpoints:
+    """``save(folder / "step_<n>.zip")`` each time ``n`` env steps reach ``every`` or more past the last
+    save (``every=0``: never). Any trainer calls it with its step count; SB3's through :class:`CheckpointEvery`."""
+
+    def __init__(self, folder: Path, every: int, save: Callable[[Path], Any]) -> None:
+        self.folder, self.every, self.save = Path(folder), every, save
+        self._next = every
+
+    def __call__(self, num_timesteps: int) -> None:
+        if self.every and num_timesteps >= self._next:
+            self.save(self.folder / f"step_{num_timesteps}.zip")
+            self._next = (num_timesteps // self.every + 1) * self.every
+
+
 class CheckpointEvery(BaseCallback):
-    """Saves ``checkpoints/step_<timesteps>.zip`` (and statistics) every ``every`` env steps."""
+    """Saves ``checkpoints/step_<timesteps>.zip`` (and statistics) every ``every`` env steps of SB3's loop."""
 
     def __init__(self, folder: Path, every: int) -> None:
         super().__init__()
-        self.folder = Path(folder)
-        self.every = every
-        self._next = every
+        self.checkpoints = Checkpoints(folder, every, lambda path: save_checkpoint(self.model, path))
 
     def _on_step(self) -> bool:
-        if self.num_timesteps >= self._next:
-            save_checkpoint(self.model, self.folder / f"step_{self.num_timesteps}.zip")
-            self._next += self.every
+        self.checkpoints(self.num_timesteps)
         return True

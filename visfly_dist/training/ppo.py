@@ -40,13 +40,13 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
 from visfly_dist.training.callbacks import SuccessCallback
-from visfly_dist.training.checkpoints import CheckpointEvery, save_checkpoint
+from visfly_dist.training.checkpoints import CheckpointEvery, Checkpoints, save_checkpoint
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.host_plan import apply_host_plan
 from visfly_dist.training.memory import keep_freed_memory
 from visfly_dist.training.overlap import OverlappedPPO, UpdateThreadsPPO
-from visfly_dist.training.run import Checkpoints, TrainResult, env_kwargs, vector_keys, write_config  # noqa: F401 - re-exported
+from visfly_dist.training.run import TrainResult, env_kwargs, vector_keys, write_config  # noqa: F401 - re-exported
 from visfly_dist.training.tensor_ppo import TensorPPO
 from visfly_dist.training.training_video import VideoCallback, video_for
 
@@ -143,7 +143,7 @@ def train(cfg: TrainConfig) -> TrainResult:
             learn = lambda: trainer.learn(cfg.timesteps, success, on_rollout_end=on_rollout_end)  # noqa: E731
             save, phases = trainer.save, trainer.phase_seconds
         else:
-            callbacks = [success] + ([CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every)] if cfg.checkpoint_every else [])
+            callbacks = [success, CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every)]
             callbacks += [VideoCallback(video)] if video is not None else []
             learn = lambda: model.learn(cfg.timesteps, callback=callbacks, progress_bar=False)  # noqa: E731
             save, phases = (lambda path: save_checkpoint(model, path)), getattr(model, "phase_seconds", {})

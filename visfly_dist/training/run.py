@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -74,16 +74,3 @@ def write_config(cfg: TrainConfig, run_dir: Path) -> None:
     text = json.dumps(cfg.to_dict(), indent=2, default=str)
     print(f"visfly-dist train {cfg.task}: run folder {run_dir}\n{text}", flush=True)
     (run_dir / "config.json").write_text(text + "\n")
-
-
-class Checkpoints:
-    """``save(folder / "step_<n>.zip")`` each time a rollout ends ``every`` or more env steps after the last one."""
-
-    def __init__(self, folder: Path, every: int, save: Callable[[Path], Any]) -> None:
-        self.folder, self.every, self.save = Path(folder), every, save
-        self._next = every
-
-    def __call__(self, num_timesteps: int) -> None:
-        if self.every and num_timesteps >= self._next:
-            self.save(self.folder / f"step_{num_timesteps}.zip")
-            self._next = (num_timesteps // self.every + 1) * self.every

@@ -312,7 +312,8 @@ class TensorPPO:
         obs, reward, terminated, truncated, info = result
         everyone = len(ids) == self.num_envs
         rows = None if everyone else ids.to(self.device)
-        done = (terminated | truncated).to(self.device)
+        ended = terminated | truncated
+        done = ended.to(self.device)
         reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows)
         cut = truncated.to(self.device)
         if bool(cut.any()):  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
@@ -332,7 +333,7 @@ class TensorPPO:
             for k, v in fresh.items():
                 self._obs[k][rows] = v
         if bool(done.any()):
-            self._record_episodes(terminated | truncated, truncated, info)
+            self._record_episodes(ended, truncated, info)
 
     def _record_episodes(self, done: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> None:
         """Hand every finished episode's outcome to the episode log."""
