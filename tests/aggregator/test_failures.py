@@ -49,11 +49,13 @@ def test_sigkill_moves_scenes_in_the_background_then_no_workers_left():
         np.testing.assert_array_equal(again.distance, before.distance)
 
         os.kill(agg.local_worker_pids()[survivor[0]], signal.SIGKILL)
-        t0 = time.monotonic()
+        served = []  # steps that returned after the last worker died
         with pytest.raises(NoWorkersError, match="no scene worker reachable for outage_limit_s=2"):
             for _ in range(3):
-                agg.observe(poses)
-        assert time.monotonic() - t0 < 2.0 + 3 * agg.pool_config.step_timeout_s
+                served.append(agg.observe(poses))
+        # the step that lost the last worker serves stale data, every agent marked lost; the next one waits
+        # out the outage limit and raises: no step is taken as if data had come
+        assert len(served) <= 1 and all(o.lost.all() for o in served), [o.lost.tolist() for o in served]
 
 
 def test_hung_worker_is_killed_replaced_and_rebalanced():

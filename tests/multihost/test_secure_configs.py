@@ -15,7 +15,7 @@ import pytest
 import zenoh
 
 from tests.aggregator.conftest import make_aggregator
-from tests.helpers import REPO, _read_line, call, free_port, start_worker, stop_process
+from tests.helpers import REPO, _read_line, call, free_port, start_worker, stop_process, wait_for
 from tests.multihost.deployed import copy_deploy_configs
 from visfly_dist.errors import AccessDeniedError, AuthenticationError, RouterUnreachableError, TlsHandshakeError
 from visfly_dist.protocol import keys
@@ -120,9 +120,15 @@ def test_acl_lets_each_role_do_only_its_part(routers, configs, scene_root):
         tokens = trainer.liveliness().declare_subscriber(keys.workers_alive_pattern(RUN),
                                                          zenoh.handlers.FifoChannel(16), history=True)
         try:
-            time.sleep(1.0)
-            seen = {keys.worker_id_from_alive_key(str(s.key_expr)) for s in iter(tokens.try_recv, None)}
-            assert seen == {"good"}  # the rogue's token is dropped too
+            seen: set[str] = set()
+
+            def collect() -> set[str]:
+                seen.update(keys.worker_id_from_alive_key(str(s.key_expr)) for s in iter(tokens.try_recv, None))
+                return seen
+
+            assert wait_for(lambda: "good" in collect(), timeout=60, interval=0.1), seen
+            time.sleep(1.0)  # room for a token that should not come (it would travel with the good one)
+            assert collect() == {"good"}  # the rogue's token is dropped too
         finally:
             tokens.undeclare()
     finally:
@@ -202,10 +208,8 @@ def test_launch_hands_its_config_to_its_workers(routers, configs, tmp_path):
     try:
         assert "launch ready" in _read_line(launch, 30.0)
         alive = keys.worker_alive("launched", "lw-0")
-        deadline = time.monotonic() + 60
-        while not [r for r in session.liveliness().get(alive, timeout=1) if r.ok is not None]:
-            assert time.monotonic() < deadline, (tmp_path / "logs" / "lw-0.log").read_text()
-            time.sleep(0.2)
+        assert wait_for(lambda: [r for r in session.liveliness().get(alive, timeout=1) if r.ok is not None],
+                        timeout=120, interval=0.2), (tmp_path / "logs" / "lw-0.log").read_text()
     finally:
         session.close()
         assert stop_process(launch) == 0
