@@ -197,22 +197,46 @@ def test_close_is_idempotent_and_the_env_refuses_work_afterwards():
         env.reset()
 
 
-def test_agents_of_a_killed_worker_are_truncated_as_lost_and_reset():
+def _kill_a_worker(env):
+    """SIGKILL one of two local workers; the agents whose scenes it served."""
+    victim = env.aggregator.workers[0]
+    slots = [s for s, w in env.aggregator.assignment().items() if w == victim]
+    os.kill(env.aggregator.local_worker_pids()[victim], signal.SIGKILL)
+    return np.isin(env.aggregator.agent_scene, slots)
+
+
+def test_agents_of_a_killed_worker_are_held_until_their_scene_is_served_again():
     with make_counter(num_envs=4, max_episode_steps=50, pool=small_pool(workers=2, respawn=False)) as env:
         env.reset()
+        obs, _, _, _ = env.step(hover(env))
+        affected = _kill_a_worker(env)
+        held_at = obs["state"][affected, :3].copy()
+        served_again, held_steps = False, 0
+        for _ in range(400):  # the scenes move to the survivor in the background
+            obs, reward, done, infos = env.step(hover(env))
+            assert not done.any()  # nobody's episode is cut
+            held = np.array([info.get("held", False) for info in infos])
+            assert not (held & ~affected).any()
+            assert (reward[held] == 0).all() and (obs["step"][held, 0] == 1).all()  # paused: no step, no reward
+            assert np.abs(obs["state"][held, :3] - held_at[held[affected]]).max(initial=0) < 0.05  # state noise only
+            held_steps += int(held.any())
+            if not held.any():
+                served_again = True
+                break
+        assert served_again and held_steps >= 1
+        assert (obs["step"][affected, 0] >= 2).all()  # the episode went on from where it paused (scenes may
+        # come back a step apart)
+        assert not any(info.get("lost") for info in infos)
+
+
+def test_lost_agents_are_cut_at_once_with_no_hold():
+    with make_counter(num_envs=4, max_episode_steps=50, lost_hold_s=0.0,
+                      pool=small_pool(workers=2, respawn=False)) as env:
+        env.reset()
         env.step(hover(env))
-        victim = env.aggregator.workers[0]
-        slots = [s for s, w in env.aggregator.assignment().items() if w == victim]
-        affected = np.isin(env.aggregator.agent_scene, slots)
-        os.kill(env.aggregator.local_worker_pids()[victim], signal.SIGKILL)
+        affected = _kill_a_worker(env)
         obs, _, done, infos = env.step(hover(env))
         assert done.tolist() == affected.tolist()
         for i in np.flatnonzero(affected):
             assert infos[i]["lost"] is True and infos[i]["TimeLimit.truncated"] is True
             assert infos[i]["terminal_observation"]["step"][0] == 2 and obs["step"][i, 0] == 0
-        for _ in range(400):  # the scenes move to the survivor in the background; until then only they end
-            _, _, done, _ = env.step(hover(env))
-            assert not (done & ~affected).any()
-            if not done.any():
-                break
-        assert not done.any()

@@ -52,7 +52,7 @@ class HoverStub:
         self.calls += 1
         truncated = (self.t >= self.length) | lost
         terminal = self.observe()
-        info = {"terminal_observation": terminal, "lost": lost, "success": torch.zeros_like(lost),
+        info = {"terminal_observation": terminal, "lost": lost, "held": torch.zeros_like(lost), "success": torch.zeros_like(lost),
                 "episode_return": self.returns.clone(), "episode_length": self.t.clone()}
         self.state = QuadState.where(truncated, self.fresh, self.state)
         self.t = torch.where(truncated, 0, self.t)

@@ -106,6 +106,53 @@ def test_gae_matches_sb3s_rollout_buffer() -> None:
     np.testing.assert_allclose(ours.returns.numpy(), sb3.returns, rtol=1e-5, atol=1e-6)
 
 
+def test_gae_passes_over_held_steps_as_if_they_never_happened() -> None:
+    """An agent held while its worker was replaced has steps that are no transitions: its advantages
+    and returns on the other steps equal those of the same rollout with the held steps cut out."""
+    rng = np.random.default_rng(3)
+    steps, envs, gamma, lam = 12, 3, 0.95, 0.9
+    rewards = rng.normal(size=(steps, envs)).astype(np.float32)
+    values = rng.normal(size=(steps, envs)).astype(np.float32)
+    dones = rng.random((steps, envs)) < 0.2
+    held = np.zeros((steps, envs), dtype=bool)
+    held[3:6, 0] = held[10:, 1] = held[0, 2] = True
+    dones[held] = False
+    rewards[held] = 0.0
+    last_values = rng.normal(size=envs).astype(np.float32)
+    space = spaces.Dict({"state": spaces.Box(-1, 1, (1,), np.float32)})
+    ours = Rollout(space, steps, envs, CPU)
+    ours.rewards[:], ours.values[:] = torch.as_tensor(rewards), torch.as_tensor(values)
+    ours.dones[:], ours.held[:] = torch.as_tensor(dones), torch.as_tensor(held)
+    ours.compute_gae(torch.as_tensor(last_values), gamma, lam)
+    for env in range(envs):
+        kept = ~held[:, env]
+        alone = Rollout(space, int(kept.sum()), 1, CPU)
+        alone.rewards[:, 0] = torch.as_tensor(rewards[kept, env])
+        alone.values[:, 0] = torch.as_tensor(values[kept, env])
+        alone.dones[:, 0] = torch.as_tensor(dones[kept, env])
+        alone.compute_gae(torch.as_tensor(last_values[env:env + 1]), gamma, lam)
+        np.testing.assert_allclose(ours.advantages[kept, env].numpy(), alone.advantages[:, 0].numpy(), rtol=1e-5)
+        np.testing.assert_allclose(ours.returns[kept, env].numpy(), alone.returns[:, 0].numpy(), rtol=1e-5)
+
+
+def test_held_rows_leave_the_reward_statistics_alone() -> None:
+    """A held row's step did not happen: its discounted return stays, and it is not a sample of the
+    return statistics (VecNormalize's formulas over the other rows only)."""
+    space = spaces.Dict({"state": spaces.Box(-1, 1, (1,), np.float32)})
+    norm, ret_rms, returns = Normalizer(space, 2, 0.9, CPU), RunningMeanStd(shape=()), np.zeros(2)
+    rng = np.random.default_rng(4)
+    for step in range(10):
+        reward = rng.normal(size=2).astype(np.float32)
+        held = np.array([False, step % 3 == 0])
+        scaled = norm.reward(torch.as_tensor(reward), torch.tensor([False, False]), held=torch.as_tensor(held))
+        returns = np.where(held, returns, returns * 0.9 + reward)
+        ret_rms.update(returns[~held])
+        np.testing.assert_allclose(norm.returns.numpy(), returns, rtol=1e-6)
+        expected = np.clip(reward / np.sqrt(ret_rms.var + EPSILON), -10, 10)
+        np.testing.assert_allclose(scaled.numpy()[~held], expected[~held], rtol=1e-5)
+    assert norm.ret_moments.count == pytest.approx(ret_rms.count)
+
+
 def test_a_tensor_ppo_run_counts_episodes_and_writes_checkpoints_eval_loads(tmp_path: Path) -> None:
     """Gap crossing (teams of 3, two overlapped groups of whole teams): episodes reach the curve,
     checkpoints and the final model are SB3 files with statistics, and eval runs them."""

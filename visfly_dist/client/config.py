@@ -65,6 +65,8 @@ class EnvConfig:
         multi_agent: agents of one scene see each other in images (workers render the others).
         drone_radius: collision radius of a drone, metres.
         search_radius: nearest-obstacle queries look this far, metres.
+        lost_hold_s: how long an agent whose worker failed is held (paused, no transition) while
+            the worker is replaced, before its episode ends as truncated (``lost``); 0 cuts at once.
     """
 
     evaluation_defaults: ClassVar[dict[str, Any]] = {}
@@ -96,6 +98,7 @@ class EnvConfig:
     multi_agent: bool = False
     drone_radius: float = 0.1
     search_radius: float = 5.0
+    lost_hold_s: float = 30.0
 
     def __post_init__(self) -> None:
         if isinstance(self.scenes, str):
@@ -126,6 +129,8 @@ class EnvConfig:
         if counts_ok and self.num_envs % self.agents_per_scene:
             out.append(f"num_envs={self.num_envs!r} must be divisible by agents_per_scene={self.agents_per_scene!r}")
         out += self._dynamics_problems()
+        if not _is_number(self.lost_hold_s) or not 0 <= self.lost_hold_s <= 3600:
+            out.append(f"lost_hold_s={self.lost_hold_s!r} must be a number of seconds in [0, 3600]")
         for name in ("drone_radius", "search_radius"):
             value = getattr(self, name)
             if not _is_number(value) or not 0 < value <= 100:

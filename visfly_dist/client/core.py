@@ -10,7 +10,11 @@ tasks subclass; trainers that want no numpy (``training/tensor_ppo.py``) call th
 One step: actions -> ``Quadrotor.step`` -> poses -> ``Aggregator.observe`` -> images to torch (+
 noise) -> ``get_success``, ``get_failure``, then ``get_reward`` (which may read ``self.success`` and
 ``self.failure``), then ``get_observation``. ``terminated = success | failure``; ``truncated`` =
-time limit, lost agents (no worker answered) and agents whose scene was swapped. Done agents are
+time limit, agents whose scene was swapped, and lost agents held for longer than ``lost_hold_s``.
+An agent whose worker failed (no fresh observation: ``lost``) is *held*: its step is undone (state
+back to where it was, no reward, its episode neither advances nor ends, ``info["held"]``), as a
+NEXT_STEP autoreset holds an agent, and it resumes with a fresh observation once its scene is served
+again (a replacement worker takes it over in seconds). Done agents are
 reset by masked selection and their fresh observation replaces the terminal one, which goes into
 ``info["terminal_observation"]``.
 """
@@ -67,6 +71,7 @@ class _InFlight:
     group: torch.Tensor
     members: np.ndarray
     held: torch.Tensor
+    before: QuadState  # the state before this step: where an agent whose worker fails is held
     full: bool
     spawn_agents: np.ndarray
     started: float
@@ -82,10 +87,14 @@ class StepResult:
         observation: key -> ``(N, ...)`` tensors after auto-reset.
         reward: ``(N,)``, carries gradients when ``requires_grad``.
         terminated: ``(N,)`` bool, success or failure.
-        truncated: ``(N,)`` bool, time limit, lost agent, or scene swap (never also terminated).
+        truncated: ``(N,)`` bool, time limit, lost agent held too long, or scene swap (never also
+            terminated).
         info: ``terminal_observation`` (observation before the reset, all rows), ``success``,
-            ``collision``, ``out_of_bounds``, ``lost``, ``swapped`` (``(N,)`` bool), and
-            ``episode_return`` / ``episode_length`` (``(N,)``, meaningful where done).
+            ``collision``, ``out_of_bounds``, ``lost`` (truncated because its worker stayed away
+            longer than ``lost_hold_s``), ``held`` (paused this step: its worker failed; no reward,
+            its state and episode unchanged: not a transition to learn from), ``swapped``
+            (``(N,)`` bool each), and ``episode_return`` / ``episode_length`` (``(N,)``,
+            meaningful where done).
     """
 
     observation: dict[str, torch.Tensor]
@@ -167,6 +176,7 @@ class TensorEnv:
         self._everyone = torch.ones(n, dtype=torch.bool, device=self.device)  # read only: the group of a plain step
         self._no_one = torch.zeros(n, dtype=torch.bool, device=self.device)  # read only: nobody held
         self._oob: tuple[QuadState, torch.Tensor, torch.Tensor] | None = None  # out_of_bounds of one state
+        self._lost_since = np.full(n, np.nan)  # per agent: when its worker stopped answering (monotonic s)
 
     # ----- task hooks ---------------------------------------------------------------------------
 
@@ -293,6 +303,7 @@ class TensorEnv:
         agents = np.flatnonzero(members)
         held = self._no_one if hold is None else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
         full = len(agents) == self.num_envs and hold is None  # every agent moves: no masking needed
+        before = self.state
         stepped = self.quad.step(self.state, actions)
         self.state = stepped if full or bool((group & ~held).all()) else QuadState.where(group & ~held, stepped, self.state)
         self.actions = actions if len(agents) == self.num_envs else torch.where(group[:, None], actions, self.actions)
@@ -307,7 +318,7 @@ class TensorEnv:
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
                                         sim_time=sim_time)
         self.precompute()  # the workers render meanwhile
-        return _InFlight(ticket, group, members, held, full, spawn_agents, t0, t1 - t0, sim_time)
+        return _InFlight(ticket, group, members, held, before, full, spawn_agents, t0, t1 - t0, sim_time)
 
     def _finish(self, flight: _InFlight) -> StepResult:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
@@ -323,12 +334,16 @@ class TensorEnv:
         everyone = len(flight.ticket.agents) == self.num_envs
         self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)  # noqa: E501
         t1 = time.perf_counter()
-        group, full = flight.group, flight.full
+        group, full, held = flight.group, flight.full, flight.held
+        paused = self._hold_lost(obs.lost, flight)
+        if paused is not None:  # their step is undone: they wait where they were for their worker
+            self.state = QuadState.where(paused, flight.before, self.state)
+            full, held = False, held | paused
         # with every agent moving (a plain step) the group and hold masks select everything: skip them
-        live = group if full else group & ~flight.held
+        live = group if full else group & ~held
         self.step_mask = live
         self.episode_step = self.episode_step + 1 if full else self.episode_step + live.long()
-        lost = self.frame.lost if full else self.frame.lost & group
+        lost = self.frame.lost if full else self.frame.lost & live  # lost and not held: cut now
         success = self.get_success() & ~lost
         self.success = success if full else success & live
         failure = self.get_failure() & ~lost & ~self.success
@@ -351,6 +366,7 @@ class TensorEnv:
             truncated = truncated | swapped
         collision, out_of_bounds = self.frame.collision, self.out_of_bounds()
         info = {"terminal_observation": observation, "success": self.success, "lost": lost,
+                "held": self._no_one if paused is None else paused,
                 "collision": collision if full else collision & group,
                 "out_of_bounds": out_of_bounds if full else out_of_bounds & group,
                 "swapped": swapped, "episode_return": self.episode_return,
@@ -363,6 +379,28 @@ class TensorEnv:
                              "observe_s": self.frame_timings.get("total_s", t1 - t0),
                              "total_s": time.perf_counter() - flight.started}
         return StepResult(observation, reward, terminated, truncated, info)
+
+    def _hold_lost(self, lost_rows: np.ndarray, flight: _InFlight) -> torch.Tensor | None:
+        """``(N,)`` bool: the agents of this step with no fresh observation that are held (``None``
+        when there are none). An agent is held from the first step its worker fails to answer for
+        up to ``lost_hold_s``; after that its episode is cut (truncated, ``lost``) once, and the
+        next one is held again if the worker is still away."""
+        since = self._lost_since
+        agents = flight.ticket.agents
+        if not lost_rows.any():
+            if not np.isnan(since[agents]).all():
+                since[agents] = np.nan  # served again
+            return None
+        now = time.monotonic()
+        lost = np.zeros(self.num_envs, dtype=bool)
+        lost[agents] = lost_rows
+        lost &= ~flight.held.cpu().numpy()  # an agent held by the caller stays as it is asked
+        since[flight.members & ~lost] = np.nan
+        since[lost & np.isnan(since)] = now
+        expired = lost & (now - since >= self.config.lost_hold_s)
+        since[expired] = np.nan
+        paused = lost & ~expired
+        return torch.as_tensor(paused, device=self.device) if paused.any() else None
 
     # ----- asynchronous stepping (EnvPool-style) --------------------------------------------------
 

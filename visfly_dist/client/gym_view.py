@@ -126,7 +126,7 @@ class GymnasiumVectorView(VectorEnv):
         """Per-agent flags of the step as Gymnasium vector infos (``key`` and its ``_key`` mask)."""
         out: dict[str, Any] = {}
         for key, name in (("success", "is_success"), ("collision", "collision"), ("out_of_bounds", "out_of_bounds"),
-                          ("lost", "lost"), ("swapped", "swapped")):
+                          ("lost", "lost"), ("held", "held"), ("swapped", "swapped")):
             out[name] = info[key].detach().cpu().numpy().astype(bool)
             out[f"_{name}"] = np.ones(self.num_envs, dtype=bool)
         return out

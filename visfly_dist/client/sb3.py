@@ -74,7 +74,8 @@ class SB3VecEnv(TensorEnv, VecEnv):
 
     def _sb3_infos(self, terminated: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> list[dict[str, Any]]:
         """One fresh info dict per row; a done row also gets its terminal observation (a copy of
-        its own rows only) and its episode's return, length and end flags."""
+        its own rows only) and its episode's return, length and end flags; a held row (its worker
+        failed; see :class:`~visfly_dist.client.core.StepResult`) gets ``held: True``."""
         flags = {k: info[k].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
         cut = truncated.cpu().numpy()
         done = (terminated | truncated).cpu().numpy()
@@ -82,6 +83,9 @@ class SB3VecEnv(TensorEnv, VecEnv):
         for i in np.flatnonzero(flags["success"] | flags["collision"] | flags["out_of_bounds"] | cut).tolist():
             infos[i].update({"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
                              "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(cut[i])})
+        held = info["held"].cpu().numpy()
+        for i in np.flatnonzero(held).tolist():  # paused while its worker is replaced: reward 0, not done
+            infos[i]["held"] = True
         if done.any():
             rows = np.flatnonzero(done)
             terminal = {k: v[rows] for k, v in self.to_numpy(info["terminal_observation"]).items()}  # done rows only

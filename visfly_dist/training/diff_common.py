@@ -158,8 +158,9 @@ def rollout_window(env: Any, actor: Callable[[Obs], torch.Tensor], obs: Obs, hor
     episode truncated inside the window adds ``d_t gamma V(terminal obs)`` and every agent still
     running at the end adds ``d_T V(obs_T)``; a terminated episode adds nothing.
 
-    A lost agent (its worker died; the env truncates and resets it) contributes no reward and no
-    bootstrap at that step, and the window ends there: the caller logs it.
+    A lost or held agent (its worker died: the env holds it, then truncates it if the worker stays
+    away) contributes no reward and no bootstrap at that step, and the window ends there: the caller
+    logs it.
     """
     n = env.num_envs
     discount = obs_dtype_ones(obs, n)
@@ -170,7 +171,7 @@ def rollout_window(env: Any, actor: Callable[[Obs], torch.Tensor], obs: Obs, hor
     for _ in range(horizon):
         record_obs.append(detach_obs(obs))
         obs, reward, terminated, truncated, info = env.step_tensor(actor(obs))
-        valid = ~info["lost"]
+        valid = ~(info["lost"] | info["held"])
         reward = torch.where(valid, reward, torch.zeros_like(reward))
         total = total + discount * reward
         done = terminated | truncated | ~valid

@@ -16,7 +16,10 @@ on :meth:`~visfly_dist.client.env_base.DroneEnvBase.step_tensor`:
 3. **Normalise on the device.** Vector entries (``state``, ``target``, ...) and rewards are scaled
    by running statistics kept as tensors (VecNormalize's formulas: clip 10, epsilon 1e-8, returns
    discounted by ``gamma``); images are never copied for it. A truncated episode (time limit,
-   scene swap, lost worker) is bootstrapped with the value of its terminal observation, as SB3 does.
+   scene swap, a worker away too long) is bootstrapped with the value of its terminal observation, as
+   SB3 does. A step in which an agent was *held* (its worker failed and is being replaced: the env
+   undid its step) is no transition: it is left out of the return statistics, GAE passes over it,
+   and the update never samples it.
 4. **Learn.** GAE on the device, then ``n_epochs`` passes of shuffled minibatches; on a CPU each
    minibatch is split across threads (:mod:`visfly_dist.training.parallel_update`, the thread
    count timed by :class:`~visfly_dist.training.threads.UpdateThreadChooser`).
@@ -121,13 +124,19 @@ class Normalizer:
             out[k] = ((obs[k] - m.mean) / torch.sqrt(m.var + EPSILON)).clamp(-CLIP_OBS, CLIP_OBS).to(obs[k].dtype)
         return out
 
-    def reward(self, reward: torch.Tensor, done: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """Scaled rewards of agents ``rows`` (default all); their discounted returns restart where ``done``."""
+    def reward(self, reward: torch.Tensor, done: torch.Tensor, rows: torch.Tensor | None = None,
+               held: torch.Tensor | None = None) -> torch.Tensor:
+        """Scaled rewards of agents ``rows`` (default all); their discounted returns restart where
+        ``done`` and stay as they are where ``held`` (a step that did not happen)."""
         if not self.enabled:
             return reward
-        returns = self.returns if rows is None else self.returns[rows]
-        returns = returns * self.gamma + reward.to(torch.float64)
-        self.ret_moments.update(returns)
+        before = self.returns if rows is None else self.returns[rows]
+        returns = before * self.gamma + reward.to(torch.float64)
+        if held is None:
+            self.ret_moments.update(returns)
+        else:
+            returns = torch.where(held, before, returns)
+            self.ret_moments.update(returns[~held])
         scaled = (reward / torch.sqrt(self.ret_moments.var + EPSILON).to(reward.dtype)).clamp(-CLIP_REWARD, CLIP_REWARD)
         returns = torch.where(done, 0.0, returns)
         if rows is None:
@@ -163,18 +172,22 @@ class Rollout:
         self.values = torch.zeros(shape, device=device)
         self.rewards = torch.zeros(shape, device=device)
         self.dones = torch.zeros(shape, dtype=torch.bool, device=device)
+        self.held = torch.zeros(shape, dtype=torch.bool, device=device)  # no transition: the agent was held
         self.advantages = torch.zeros(shape, device=device)
         self.returns = torch.zeros(shape, device=device)
 
     def compute_gae(self, last_values: torch.Tensor, gamma: float, gae_lambda: float) -> None:
-        """Advantages and returns (GAE); ``last_values``: values of the observations after the last step."""
+        """Advantages and returns (GAE); ``last_values``: values of the observations after the last step.
+        A held step is passed over: the step before it bootstraps from the step after it."""
         next_value, running = last_values, torch.zeros_like(last_values)
         for t in reversed(range(self.rewards.shape[0])):
             live = (~self.dones[t]).float()
             delta = self.rewards[t] + gamma * next_value * live - self.values[t]
-            running = delta + gamma * gae_lambda * live * running
+            step = delta + gamma * gae_lambda * live * running
+            held = self.held[t]
+            running = torch.where(held, running, step)
             self.advantages[t] = running
-            next_value = self.values[t]
+            next_value = torch.where(held, next_value, self.values[t])
         self.returns = self.advantages + self.values
 
 
@@ -314,7 +327,9 @@ class TensorPPO:
         rows = None if everyone else ids.to(self.device)
         ended = terminated | truncated
         done = ended.to(self.device)
-        reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows)
+        held = info["held"].to(self.device)
+        reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows,
+                                  held if bool(held.any()) else None)
         cut = truncated.to(self.device)
         if bool(cut.any()):  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
             which = cut.nonzero().squeeze(1)
@@ -326,6 +341,7 @@ class TensorPPO:
         index = slice(None) if everyone else rows
         r.rewards[t, index] = reward
         r.dones[t, index] = done
+        r.held[t, index] = held
         fresh = self.norm.observe(self._to_device(obs))
         if everyone:
             self._obs = fresh
@@ -361,6 +377,9 @@ class TensorPPO:
         model, policy, r = self.model, self.policy, self.rollout
         policy.set_training_mode(True)
         size = self.n_steps * self.num_envs
+        transitions = (~r.held).reshape(size).nonzero().squeeze(1)  # held steps are not sampled
+        if len(transitions) == 0:  # every agent was held for the whole rollout: nothing to learn from
+            return
         flat = {k: v.reshape(size, *v.shape[2:]) for k, v in r.observations.items()}
         actions, values, log_probs = r.actions.reshape(size, -1), r.values.reshape(size), r.log_probs.reshape(size)
         advantages, returns = r.advantages.reshape(size), r.returns.reshape(size)
@@ -376,8 +395,8 @@ class TensorPPO:
         stats, t0 = [], time.perf_counter()
         try:
             for _ in range(model.n_epochs):
-                order = torch.randperm(size, device=self.device)
-                for start in range(0, size, model.batch_size):
+                order = transitions[torch.randperm(len(transitions), device=self.device)]
+                for start in range(0, len(order), model.batch_size):
                     idx = order[start:start + model.batch_size]
                     batch = Minibatch({k: v[idx] for k, v in flat.items()}, actions[idx], values[idx],
                                       log_probs[idx], advantages[idx], returns[idx])
@@ -399,7 +418,9 @@ class TensorPPO:
         record("train/value_loss", float(np.mean([s.value_loss for s in stats])))
         record("train/approx_kl", float(np.mean([s.approx_kl for s in stats])))
         record("train/clip_fraction", float(np.mean([s.clipped for s in stats])))
-        record("train/explained_variance", float(explained_variance(values.cpu().numpy(), returns.cpu().numpy())))
+        record("train/explained_variance", float(explained_variance(values[transitions].cpu().numpy(),
+                                                                    returns[transitions].cpu().numpy())))
+        record("train/held_steps", size - len(transitions))
         record("train/std", float(torch.exp(policy.log_std.detach()).mean()))
         record("train/n_updates", model._n_updates, exclude="tensorboard")
 
