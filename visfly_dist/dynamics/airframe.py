@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Sequence, Union
+from typing import AbstractSet, Any, Sequence, Union
 
 import torch
 
@@ -199,7 +199,7 @@ def _names(cls: type) -> list[str]:
     return [f.name for f in fields(cls)]
 
 
-def _check_keys(data: dict[str, Any], cls: type, source: str, optional: set[str] = frozenset()) -> None:
+def _check_keys(data: dict[str, Any], cls: type, source: str, optional: AbstractSet[str] = frozenset()) -> None:
     expected = set(_names(cls))
     missing = expected - set(data) - set(optional)
     unknown = set(data) - expected

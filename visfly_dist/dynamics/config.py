@@ -87,12 +87,21 @@ class DynamicsConfig:
     @property
     def substeps(self) -> int:
         """Physics substeps per control step."""
-        return _ratio(self.ctrl_dt, self.sim_dt)
+        return _whole(_ratio(self.ctrl_dt, self.sim_dt), "sim_dt must divide ctrl_dt", self)
 
     @property
     def delay_steps(self) -> int:
         """Control steps of action delay (the length of ``QuadState.action_queue``)."""
-        return _ratio(self.action_delay_s, self.ctrl_dt, allow_zero=True)
+        return _whole(_ratio(self.action_delay_s, self.ctrl_dt, allow_zero=True),
+                      "action_delay_s must be a multiple of ctrl_dt", self)
+
+
+def _whole(k: Optional[int], rule: str, config: DynamicsConfig) -> int:
+    """``k``, a ratio ``validate()`` accepts; a ConfigError naming ``rule`` for one it refuses."""
+    if k is None:
+        raise ConfigError(f"{rule} (sim_dt={config.sim_dt}, ctrl_dt={config.ctrl_dt}, "
+                          f"action_delay_s={config.action_delay_s})")
+    return k
 
 
 def _ratio(a: float, b: float, allow_zero: bool = False) -> Optional[int]:

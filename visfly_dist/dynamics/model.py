@@ -18,6 +18,8 @@ Model (Airframe docstring has the rotor layout):
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 
 from visfly_dist.dynamics.airframe import Airframe
@@ -174,7 +176,7 @@ class RigidBodyModel:
         Every bilinear term of the model (rotation matrix, quaternion rate, gyroscopic torque) and
         the thrust polynomial folded into the mixer: one matmul per derivative instead of four.
         """
-        kw = dict(dtype=self.dtype, device=self.device)
+        kw: dict[str, Any] = {"dtype": self.dtype, "device": self.device}
         matrix = torch.zeros(17, 57, **kw)
         matrix[0:4, 0:4] = self.mix * self.thrust_b
         matrix[0:4, 4:8] = self.mix * self.thrust_a

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 
 from visfly_dist.dynamics.adjoint import CtbrStep, CtbrStepFunction, ctbr_step
 from visfly_dist.dynamics.airframe import Airframe, load_airframe
 from visfly_dist.dynamics.config import DynamicsConfig
-from visfly_dist.dynamics.controllers import make_controller
+from visfly_dist.dynamics.controllers import CollectiveThrustBodyRate, PositionYaw, make_controller
 from visfly_dist.dynamics.model import GRAVITY, ROTOR_ROW, ROWS, RigidBodyModel, euler_step, rk4_step, unpack
 from visfly_dist.dynamics.state import QuadState
 from visfly_dist.errors import ConfigError
@@ -86,7 +86,7 @@ class Quadrotor:
         # The adjoint runs on NumPy views of CPU tensors. Past about 3,000 agents its dense matmuls
         # cost more than autograd's bookkeeping saves (measured with grad: 0.75x autograd at 4,096,
         # 1.1x at 3,000, 2-3x at 1,000, 5x at 100); compiled, autograd's own graph is used.
-        if config.adjoint and config.controller == "ctbr" and not config.compile and self.device.type == "cpu" \
+        if config.adjoint and isinstance(self.controller, CollectiveThrustBodyRate) and not config.compile and self.device.type == "cpu" \
                 and num_agents <= ADJOINT_MAX_AGENTS and not _any_requires_grad(self.model, self.controller):
             self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
                                      config.integrator == "rk4", config.ground)
@@ -115,14 +115,15 @@ class Quadrotor:
         """A state of N agents; components left None are: at the origin, at rest, level, with
         rotors at hover speed. The action queue holds the hover action (PS: the action that holds
         each agent's position)."""
-        n, kw = self.num_agents, dict(dtype=self.dtype, device=self.device)
+        n = self.num_agents
+        kw: dict[str, Any] = {"dtype": self.dtype, "device": self.device}
         pos = self._component("pos", pos, torch.zeros(n, 3, **kw))
         vel = self._component("vel", vel, torch.zeros(n, 3, **kw))
         quat = self._component("quat", quat, torch.tensor([[1.0, 0.0, 0.0, 0.0]], **kw).expand(n, 4))
         omega = self._component("omega", omega, torch.zeros(n, 3, **kw))
         rotor = self._component("rotor", rotor, self.hover_rotor_speed().expand(n, 4))
         hold = self.hover_action().expand(n, 4)
-        if self.config.controller == "ps":
+        if isinstance(self.controller, PositionYaw):
             offset = (pos.detach() - self.controller.origin.T) / 10.0
             hold = torch.cat((offset.clamp(-1, 1), hold[:, 3:]), dim=1)
         queue = hold[:, None].expand(n, self.config.delay_steps, 4).contiguous()
@@ -185,10 +186,12 @@ class Quadrotor:
                          rotor: torch.Tensor, action: torch.Tensor) -> Tensors:
         """The control step with gradients, as one autograd node (``dynamics.adjoint``); without
         them, the same NumPy forward called directly."""
+        adjoint = self._adjoint
+        assert adjoint is not None, "step() takes this path only with an adjoint"
         inputs = (pos, vel, quat, omega, rotor, action.to(self.dtype))
         if torch.is_grad_enabled() and any(x.requires_grad for x in inputs):
-            return CtbrStepFunction.apply(*inputs, self._adjoint)
-        return ctbr_step(*inputs, self._adjoint)[0]
+            return CtbrStepFunction.apply(*inputs, adjoint)
+        return ctbr_step(*inputs, adjoint)[0]
 
     def _pack(self, pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: torch.Tensor,
               rotor: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -191,7 +191,7 @@ def garage_stones(
     radii = rng.uniform(min_radius, max_radius, size=count)
     keep_clear = [(r[0] - margin, r[1] + margin) for r in (start, goal)]
     centers = best_candidate(rng, radii, GARAGE_LOW, GARAGE_HIGH, keep_clear)
-    parts = shell_boxes(GARAGE_LOW, GARAGE_HIGH)
+    parts: Parts = [*shell_boxes(GARAGE_LOW, GARAGE_HIGH)]
     parts += [(f"stone_{i:03d}", stone(rng, c, r)) for i, (c, r) in enumerate(zip(centers, radii))]
     _check(0 <= moving <= MAX_MOVING, f"moving={moving} must be in [0, {MAX_MOVING}]")
     _check(0 < moving_speed <= MAX_MOVING_SPEED, f"moving_speed={moving_speed} must be in (0, {MAX_MOVING_SPEED}] m/s")
@@ -266,7 +266,7 @@ def gap_walls(
     _check(wall_thickness > 0 and x0 < wall_x - half_t and wall_x + half_t < x1,
            f"wall_x={wall_x}, wall_thickness={wall_thickness} must put the wall inside x in ({x0}, {x1})")
     color = (170, 60, 50)
-    parts = shell_boxes(GARAGE_LOW, GARAGE_HIGH)
+    parts: Parts = [*shell_boxes(GARAGE_LOW, GARAGE_HIGH)]
     parts.append(("wall_left", box((wall_x - half_t, y0, z0), (wall_x + half_t, gap_y - half_gap, z1), color)))
     parts.append(("wall_right", box((wall_x - half_t, gap_y + half_gap, z0), (wall_x + half_t, y1, z1), color)))
     regions = {
@@ -349,7 +349,7 @@ def pillars(
     plane_low, plane_high = GARAGE_LOW.copy(), GARAGE_HIGH.copy()
     plane_low[2] = plane_high[2] = GARAGE_LOW[2] + height / 2
     centers = best_candidate(rng, radii, plane_low, plane_high, keep_clear)
-    parts = shell_boxes(GARAGE_LOW, GARAGE_HIGH)
+    parts: Parts = [*shell_boxes(GARAGE_LOW, GARAGE_HIGH)]
     for i, (center, radius) in enumerate(zip(centers, radii)):
         cylinder = trimesh.creation.cylinder(
             radius=radius, height=height, sections=16, transform=trimesh.transformations.translation_matrix(center)

@@ -37,7 +37,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
-from typing import Any, Sequence
+from typing import Any, Sequence, cast
 
 import numpy as np
 import trimesh
@@ -229,7 +229,7 @@ class _Dataset:
                 else:
                     raise SceneError(f"{where}: original_file {original!r} does not exist under {str(self.dir)!r}")
             attributes.update(overrides)
-            out.append(_Template(_handle(handle if isinstance(handle, str) else original, kind), attributes, base, where))
+            out.append(_Template(_handle(handle if isinstance(handle, str) else str(original), kind), attributes, base, where))
         return out
 
     def _from_paths(self, kind: str) -> list[_Template]:
@@ -274,7 +274,8 @@ class _Dataset:
         parts = node_meshes(read_trimesh_scene(path, self.roots))
         if not parts:
             raise SceneError(f"Habitat render asset {str(path)!r} contains no triangles")
-        return parts[0][1] if len(parts) == 1 else trimesh.util.concatenate([m for _, m in parts])
+        # concatenate is typed Geometry: meshes make a mesh
+        return parts[0][1] if len(parts) == 1 else cast(trimesh.Trimesh, trimesh.util.concatenate([m for _, m in parts]))
 
 
 def _handle(text: str, kind: str) -> str:

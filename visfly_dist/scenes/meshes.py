@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 from urllib.parse import unquote
 
 import numpy as np
@@ -52,7 +52,7 @@ def read_trimesh_scene(path: Path, roots: Sequence[Path] | None = None) -> trime
         _check_gltf_references(path, roots)
     try:
         # OBJ: one object per ``o`` directive (trimesh merges them by material otherwise).
-        options = {"split_objects": True} if suffix == ".obj" else {}
+        options: dict[str, Any] = {"split_objects": True} if suffix == ".obj" else {}
         return trimesh.load_scene(str(path), process=False, **options)
     except Exception as exc:  # trimesh raises many types on malformed files
         raise SceneError(f"cannot read mesh file {str(path)!r}: {type(exc).__name__}: {exc}") from exc

@@ -32,13 +32,14 @@ def colored(mesh: trimesh.Trimesh, color: Color, rng: np.random.Generator | None
 
 def box(low: Sequence[float], high: Sequence[float], color: Color) -> trimesh.Trimesh:
     """An axis-aligned box from corner ``low`` to corner ``high`` (12 triangles)."""
-    low, high = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
-    assert np.all(high > low), (low, high)
-    mesh = trimesh.creation.box(extents=high - low, transform=trimesh.transformations.translation_matrix((low + high) / 2))
+    lo, hi = np.asarray(low, dtype=np.float64), np.asarray(high, dtype=np.float64)
+    assert np.all(hi > lo), (lo, hi)
+    mesh = trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))
     return colored(mesh, color)
 
 
-def shell_boxes(low: Sequence[float], high: Sequence[float], thickness: float = 0.1) -> list[tuple[str, trimesh.Trimesh]]:
+def shell_boxes(low: Sequence[float] | np.ndarray, high: Sequence[float] | np.ndarray,
+                thickness: float = 0.1) -> list[tuple[str, trimesh.Trimesh]]:
     """Floor, ceiling and four walls as thin boxes just outside the box ``[low, high]``."""
     (x0, y0, z0), (x1, y1, z1), t = low, high, thickness
     floor, wall, ceiling = (120, 120, 120), (185, 178, 165), (205, 205, 205)

@@ -13,7 +13,7 @@ name, motion dict, bounding radius) so that a client computes their states with 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -77,7 +77,7 @@ class Scene:
         ids = [o.object_id for o in self.objects]
         assert len(set(ids)) == len(ids) and all(i >= 1 for i in ids), "object ids must be unique and >= 1"
         moving = [{"object_id": o.object_id, "name": o.name, "motion": o.motion.to_dict(), "radius": o.bounding_radius}
-                  for o in self.moving_objects]
+                  for o in self.objects if o.motion is not None]  # the moving objects, in order
         if moving:
             self.metadata = {**self.metadata, MOVING_KEY: moving}
         elif MOVING_KEY in self.metadata:
@@ -104,7 +104,8 @@ class Scene:
 
     def combined_mesh(self) -> trimesh.Trimesh:
         """All objects as one mesh (visuals dropped; moving objects in their local frames)."""
-        return trimesh.util.concatenate([trimesh.Trimesh(o.mesh.vertices, o.mesh.faces, process=False) for o in self.objects])
+        meshes = [trimesh.Trimesh(o.mesh.vertices, o.mesh.faces, process=False) for o in self.objects]
+        return cast(trimesh.Trimesh, trimesh.util.concatenate(meshes))  # typed Geometry: meshes make a mesh
 
     def triangle_object_ids(self) -> np.ndarray:
         """Object id of each triangle of :meth:`combined_mesh`, ``(F,)`` uint16."""

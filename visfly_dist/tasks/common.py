@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import torch
@@ -11,8 +11,17 @@ import torch
 from visfly_dist.dynamics.rotations import quat_to_rotmat
 from visfly_dist.errors import ConfigError
 
+if TYPE_CHECKING:
+    from visfly_dist.client.frame import SensorFrame
+
 TARGET_DIM = 4
 """``target_observation``: unit direction to the target in the body frame, distance (m)."""
+
+
+def sensed(frame: SensorFrame | None) -> SensorFrame:
+    """The env's last sensor frame, ``frame``: the env calls a task's hooks only once it has one."""
+    assert frame is not None, "a task hook ran before the env's first observation"
+    return frame
 
 
 def to_body(quat: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

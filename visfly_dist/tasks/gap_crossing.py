@@ -41,7 +41,7 @@ from gymnasium import spaces
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.multi_agent import MultiDroneEnvBase
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.tasks.common import TARGET_DIM, obstacle_terms, progress_speed, target_observation, vec3_problem
+from visfly_dist.tasks.common import TARGET_DIM, obstacle_terms, progress_speed, sensed, target_observation, vec3_problem
 from visfly_dist.tasks.navigation import FORWARD_DEPTH
 
 DEFAULT_TARGETS = ((13.0, -2.0, 1.5), (13.0, 0.0, 1.5), (13.0, 2.0, 1.5))
@@ -140,7 +140,7 @@ class GapCrossingEnv(MultiDroneEnvBase):
         s = self.state
         return {"state": self.state_vector(self.target), "teammates": self.teammates_observation(),
                 "target": target_observation(s.pos, s.quat, self.target),
-                "gap": target_observation(s.pos, s.quat, self.gap_point), **self.frame.images}
+                "gap": target_observation(s.pos, s.quat, self.gap_point), **sensed(self.frame).images}
 
     def get_success(self) -> torch.Tensor:
         through = self.state.pos[:, 0].detach() > self.gap_x + self.config.through_margin
@@ -148,10 +148,10 @@ class GapCrossingEnv(MultiDroneEnvBase):
         return team.repeat_interleave(self.team_size)
 
     def get_reward(self) -> torch.Tensor:
-        s, cfg = self.state, self.config
+        s, cfg, frame = self.state, self.config, sensed(self.frame)
         distance = self.path_distance()
         progress = progress_speed(self._prev_distance, distance, cfg.ctrl_dt)
-        proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
+        proximity, approach = obstacle_terms(s.pos, s.vel, frame.nearest, frame.distance, cfg.search_radius)
         crowding = (1.0 - self.teammate_distance()).clamp(min=0.0)
         reward = 0.05 * progress - 0.01 * proximity - 0.05 * approach - 0.1 * crowding - 0.002 * s.omega.norm(dim=1)
         return reward + cfg.success_bonus * self.success.float() - cfg.fail_penalty * self.failure.float()

@@ -31,7 +31,7 @@ import torch
 
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase
-from visfly_dist.tasks.common import held_steps, metadata_point, reward_problem, vec3_problem, visfly_hover_reward
+from visfly_dist.tasks.common import held_steps, metadata_point, reward_problem, sensed, vec3_problem, visfly_hover_reward
 
 
 @dataclass
@@ -107,7 +107,7 @@ class HoverEnv(DroneEnvBase):
         return held_steps(self.held, self.distance().detach() <= self.config.success_radius)
 
     def get_observation(self) -> dict[str, torch.Tensor]:
-        return {"state": self.state_vector(self.target), **self.frame.images}
+        return {"state": self.state_vector(self.target), **sensed(self.frame).images}
 
     def get_success(self) -> torch.Tensor:
         at_end = self.episode_step >= self.config.max_episode_steps

@@ -57,7 +57,7 @@ from gymnasium import spaces
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.tasks.common import metadata_point, progress_speed, reward_problem, to_body, vec3_problem
+from visfly_dist.tasks.common import metadata_point, progress_speed, reward_problem, sensed, to_body, vec3_problem
 
 DOWNWARD = (math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0)
 """+90 deg pitch: the optical axis (body +x) turns to body -z, straight down when level."""
@@ -184,7 +184,7 @@ class LandingConfig(EnvConfig):
         out += vec3_problem("spawn_half_width", self.spawn_half_width, positive=True)
         if self.camera not in CAMERAS:
             out.append(f"camera={self.camera!r} must be one of {list(CAMERAS)}")
-        elif [c.kind for c in self.cameras[:1]] != [self.camera]:
+        elif [c.kind for c in (self.cameras or ())[:1]] != [self.camera]:
             out.append(f"camera={self.camera!r} needs a {self.camera} camera first in cameras "
                        f"(e.g. leave cameras unset for the 64x64 downward one)")
         if not isinstance(self.pad_threshold, (int, float)) or not 0 < self.pad_threshold <= 255:
@@ -253,10 +253,10 @@ class LandingEnv(DroneEnvBase):
     def pad_observation(self) -> torch.Tensor:
         if self.config.camera == "depth":
             return pad_projection(self.state.pos, self.state.quat, self.pad, self.cameras[0].hfov_deg)
-        return pad_in_image(self.frame.images[self.cameras[0].name], self.config.pad_threshold)
+        return pad_in_image(sensed(self.frame).images[self.cameras[0].name], self.config.pad_threshold)
 
     def get_observation(self) -> dict[str, torch.Tensor]:
-        return {"state": self.state_vector(self.pad), "pad": self.pad_observation(), **self.frame.images}
+        return {"state": self.state_vector(self.pad), "pad": self.pad_observation(), **sensed(self.frame).images}
 
     def get_success(self) -> torch.Tensor:
         s = self.state

@@ -53,6 +53,7 @@ from visfly_dist.tasks.common import (
     obstacle_terms,
     progress_speed,
     reward_problem,
+    sensed,
     vec3_problem,
 )
 
@@ -185,14 +186,14 @@ class NavigationEnv(DroneEnvBase):
         self._goal_geometry()
 
     def get_observation(self) -> dict[str, torch.Tensor]:
-        return {"state": self.state_vector(self.goal), "target": self._goal_geometry().target, **self.frame.images}
+        return {"state": self.state_vector(self.goal), "target": self._goal_geometry().target, **sensed(self.frame).images}
 
     def get_success(self) -> torch.Tensor:
         return self.goal_distance().detach() < self.config.success_radius
 
     def get_reward(self) -> torch.Tensor:
-        s, cfg, g = self.state, self.config, self._goal_geometry()
-        proximity, approach = obstacle_terms(s.pos, s.vel, self.frame.nearest, self.frame.distance, cfg.search_radius)
+        s, cfg, g, frame = self.state, self.config, self._goal_geometry(), sensed(self.frame)
+        proximity, approach = obstacle_terms(s.pos, s.vel, frame.nearest, frame.distance, cfg.search_radius)
         if cfg.reward == "visfly":
             common = -0.002 * g.speed - 0.002 * g.spin - 0.01 * proximity
             return common + self._visfly_terms(approach, g)
@@ -205,7 +206,7 @@ class NavigationEnv(DroneEnvBase):
     def _visfly_terms(self, approach: torch.Tensor, g: _GoalGeometry) -> torch.Tensor:
         """VisFly's progress, heading, attitude, obstacle-ramp and success terms."""
         s, cfg = self.state, self.config
-        d_o = (self.frame.nearest - s.pos).norm(dim=1)
+        d_o = (sensed(self.frame).nearest - s.pos).norm(dim=1)
         progress = 0.01 * approach_speed(s.pos, s.vel, self.goal).clamp(max=10.0)
         heading = -0.01 * (angle_between(s.vel, g.rotmat[..., 0]) - math.pi / 18).clamp(min=0.0)
         ramp = -0.005 * (1.0 - d_o).clamp(min=0.0) * approach

@@ -30,7 +30,7 @@ from gymnasium import spaces
 
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase, Spawn
-from visfly_dist.tasks.common import approach_speed, progress_speed, reward_problem, to_body, vec3_problem
+from visfly_dist.tasks.common import approach_speed, progress_speed, reward_problem, sensed, to_body, vec3_problem
 
 DEFAULT_GATES = ((3.0, 0.0, 1.5), (5.0, 3.0, 2.0), (3.0, 6.0, 1.5), (0.0, 3.0, 1.0))
 
@@ -123,7 +123,7 @@ class RacingEnv(DroneEnvBase):
         gates = torch.stack([to_body(s.quat, self.next_gate(k, passed) - s.pos) for k in (0, 1)], dim=1)
         progress = (passed.float() / self.total_gates).clamp(max=1.0)[:, None]
         return {"state": self.state_vector(self.next_gate(passed=passed)), "gates": gates, "progress": progress,
-                **self.frame.images}
+                **sensed(self.frame).images}
 
     def get_success(self) -> torch.Tensor:
         return self.passed_now() >= self.total_gates

@@ -42,6 +42,7 @@ from visfly_dist.tasks.common import (
     held_steps,
     metadata_point,
     reward_problem,
+    sensed,
     to_body,
     vec3_problem,
     visfly_hover_reward,
@@ -174,7 +175,7 @@ class TrackingEnv(DroneEnvBase):
         rel = points - s.pos[:, None]
         quat = s.quat[:, None].expand(-1, cfg.future_points, -1).reshape(-1, 4)
         path = to_body(quat, rel.reshape(-1, 3)).reshape(self.num_envs, cfg.future_points, 3)
-        return {"state": self.state_vector(self.target()), "path": path, **self.frame.images}
+        return {"state": self.state_vector(self.target()), "path": path, **sensed(self.frame).images}
 
     def get_success(self) -> torch.Tensor:
         at_end = self.episode_step >= self.config.max_episode_steps
