@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import time
-import zlib
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -48,9 +47,10 @@ from visfly_dist.aggregator.dataset import SceneDataset
 from visfly_dist.aggregator.image_shm import ImageSegments, StepImages
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.slots import Move, SlotTable
+from visfly_dist.aggregator.spawn_pools import AgentStreams, PoolKey, SpawnJob, SpawnPools, SpawnSpec, spawn_spec
 from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.protocol.messages import Health, LoadScene, SampleSpawn, UnloadScene, step_message
+from visfly_dist.protocol.messages import Health, LoadScene, UnloadScene, step_message
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,6 @@ LOAD_QUEUE_ALLOWANCE_S = 2.0
 takes about 0.3 s on one core): 256 scenes placed on 2 workers at start-up must not time out
 behind each other."""
 
-SPAWN_POOL_MIN = 256
 UNLOAD_DELAY_COLLECTS = 2
 OVERLOADED_BACKOFF_S = (1.0, 30.0)
 """First and longest wait before a worker that answered ``overloaded`` is given a new scene again."""
@@ -67,31 +66,6 @@ MAX_CACHED_PLANS = 8
 """Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
 __all__ = ["Aggregator", "Observation", "StepTicket"]
-
-
-def counter_draws(keys: np.ndarray, counters: np.ndarray) -> np.ndarray:
-    """One uniform 64-bit draw per ``(key, counter)`` pair (uint64 arrays): splitmix64 over both,
-    so a stream is a pure function of its key and position, whatever other streams did."""
-    with np.errstate(over="ignore"):
-        return _splitmix64(_splitmix64(keys.astype(np.uint64)) ^ counters.astype(np.uint64))
-
-
-def _occurrence(values: np.ndarray) -> np.ndarray:
-    """``(k,)`` uint64: how many times each entry's value came earlier in ``values``."""
-    order = np.argsort(values, kind="stable")
-    ordered = values[order]
-    starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
-    rank = np.arange(len(values)) - np.repeat(starts, np.diff(np.r_[starts, len(values)]))
-    out = np.empty(len(values), dtype=np.uint64)
-    out[order] = rank
-    return out
-
-
-def _splitmix64(z: np.ndarray) -> np.ndarray:
-    z = z + np.uint64(0x9E3779B97F4A7C15)
-    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-    return z ^ (z >> np.uint64(31))
 
 
 def _increasing(agents: np.ndarray) -> bool:
@@ -143,15 +117,34 @@ class StepTicket:
 
 
 @dataclass
-class _Background:
-    """A request the aggregator does not wait for: a load for a move, a spawn pool, an unload."""
+class LoadJob:
+    """A scene load for a move, in flight."""
 
-    kind: str
     pending: Pending
-    slot: int = -1
-    move: Move | None = None
-    spec: tuple | None = None
-    refresh: bool = False
+    slot: int
+    move: Move
+
+
+@dataclass
+class UnloadJob:
+    """An unload of ``key`` on ``worker``, in flight."""
+
+    pending: Pending
+    worker: str
+    key: str
+
+
+@dataclass
+class ReconcileJob:
+    """A health request asking ``worker`` (at ``generation``) which scenes it holds, in flight."""
+
+    pending: Pending
+    worker: str
+    generation: int
+
+
+Job = LoadJob | SpawnJob | UnloadJob | ReconcileJob
+"""A request the aggregator does not wait for."""
 
 
 class Aggregator:
@@ -200,24 +193,20 @@ class Aggregator:
         self._last = blank_observation(cameras, self.num_agents, self.search_radius)
         self._last_private = True  # False while _last is an observation handed out by collect()
         self._switched = np.zeros(self.num_agents, dtype=bool)
-        self._background: list[_Background] = []
+        self._background: list[Job] = []
         self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
         self._stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
         self._collects = 0
-        self._spawn_pools: dict[tuple, np.ndarray] = {}
-        self._spawn_draws: dict[tuple, int] = {}
-        self._spawn_generation: dict[tuple, int] = {}  # refreshes asked for, per pool (seeds them)
-        self._spawn_next: dict[tuple, np.ndarray] = {}  # a refresh that arrived, used once the pool is drawn
         self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
         self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]] = {}
         self._plans_revision = -1
         self._settled: tuple[int, tuple] | None = None  # (table revision, live generations) of a pass with nothing to do
-        self._spawn_seed = np.zeros(self.num_agents, dtype=np.uint64)  # per agent: its spawn draws' stream
-        self._spawn_count = np.zeros(self.num_agents, dtype=np.uint64)  # per agent: draws since its reseed
+        self._streams = AgentStreams(self.num_agents)
         self.reseed(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
+        self._spawns = SpawnPools(self._pool, self.agents_per_scene, self.seed, pool.step_timeout_s)
         self._images = ImageSegments(self.run_id, cameras) if pool.shared_memory else None
         self._started = False
         self._closed = False
@@ -546,10 +535,10 @@ class Aggregator:
             self._reconciled[w] = gens[w]
         requests = [(w, Health().to_message()) for w in due]
         for wid, pending in zip(due, self._pool.send(requests, self.pool_config.step_timeout_s) if due else []):
-            self._background.append(_Background("reconcile", pending, spec=(wid, gens[wid])))
+            self._background.append(ReconcileJob(pending, wid, gens[wid]))
 
-    def _finish_reconcile(self, job: _Background, reply: Reply) -> None:
-        worker, generation = job.spec  # type: ignore[misc]
+    def _finish_reconcile(self, job: ReconcileJob, reply: Reply) -> None:
+        worker, generation = job.worker, job.generation
         if reply.message is None:  # asked again when it is next seen (its failures are handled where it serves)
             if self._reconciled.get(worker) == generation:
                 del self._reconciled[worker]
@@ -557,7 +546,7 @@ class Aggregator:
         known = {s.key for s in self.table.slots if s.worker == worker}
         known |= {s.move.key for s in self.table.slots if s.move is not None and s.move.worker == worker}
         known |= {k for _, w, k in self._unloads if w == worker} | self._stale.get(worker, set())
-        known |= {j.spec[1] for j in self._background if j.kind == "unload" and j.spec[0] == worker}
+        known |= {j.key for j in self._background if isinstance(j, UnloadJob) and j.worker == worker}
         unknown = sorted((set(reply.message.get("scenes", [])) | set(reply.message.get("loading", []))) - known)
         if unknown:
             log.warning("run %s: worker %s holds scenes %s that the run does not serve (their load replies "
@@ -568,8 +557,8 @@ class Aggregator:
         """Ask each ``(worker, key)`` to unload in the background; one that gets no reply is retried
         when the worker is next seen live (:meth:`_apply_background`)."""
         requests = [(w, UnloadScene(k).to_message()) for w, k in targets]
-        for target, pending in zip(targets, self._pool.send(requests, self.pool_config.step_timeout_s) if requests else []):
-            self._background.append(_Background("unload", pending, spec=target))
+        for (worker, key), pending in zip(targets, self._pool.send(requests, self.pool_config.step_timeout_s) if requests else []):
+            self._background.append(UnloadJob(pending, worker, key))
 
     def _handle_failure(self, reply: Reply, slots: Sequence[int] = ()) -> None:
         """The one failure policy: what a failed or refused request does to its worker and slots."""
@@ -637,7 +626,7 @@ class Aggregator:
             timeout_s = self.pool_config.startup_timeout_s + ahead * LOAD_QUEUE_ALLOWANCE_S
             request = LoadScene(move.key, move.source, self.cameras, self.drone_radius, self.multi_agent).to_message()
             (pending,) = self._pool.send([(move.worker, request)], timeout_s)
-            self._background.append(_Background("load", pending, slot, move))
+            self._background.append(LoadJob(pending, slot, move))
         log.info("run %s: loading in the background: %s", self.run_id,
                  [(slot, move.worker, move.reason) for slot, move in plan])
 
@@ -652,20 +641,18 @@ class Aggregator:
                 still.append(job)
                 continue
             reply = self._pool.result(job.pending)
-            if job.kind == "load":
+            if isinstance(job, LoadJob):
                 self._finish_load(job, reply, still)
-            elif job.kind == "spawn":
-                self._finish_spawn(job, reply, still)
-            elif job.kind == "reconcile":
+            elif isinstance(job, SpawnJob):
+                self._finish_spawn(job, reply)
+            elif isinstance(job, ReconcileJob):
                 self._finish_reconcile(job, reply)
             elif reply.failure is not None:  # an unload lost on the way (a flapping link): try again later
-                worker, key = job.spec
-                self._stale.setdefault(worker, set()).add(key)
+                self._stale.setdefault(job.worker, set()).add(job.key)
         self._background = still
 
-    def _finish_load(self, job: _Background, reply: Reply, still: list[_Background]) -> None:
+    def _finish_load(self, job: LoadJob, reply: Reply, still: list[Job]) -> None:
         move = job.move
-        assert move is not None
         if reply.message is None:
             self.table.fail_move(job.slot, move)
             if reply.error is not None and reply.error.code == ErrorCode.SCENE_ERROR:
@@ -686,12 +673,12 @@ class Aggregator:
             return
         move_bounds = reply.message["bounds"]
         move_meta = reply.message.get("metadata", {})
-        specs = {k[2] for k in self._spawn_pools if k[0] == job.slot}
+        specs = self._spawns.specs_of(job.slot)
         if move.reason == "swap" and specs:
             # The new scene's spawn pools come first, so resets never wait for them.
             self._pending_switch[job.slot] = (move, move_bounds, move_meta, set(specs))
             for spec in specs:
-                still.append(self._spawn_job(job.slot, move.worker, move.key, move.source, spec))
+                still.append(self._spawns.fetch(PoolKey(job.slot, move.source, spec), move.worker, move.key))
             return
         self._switch(job.slot, move, move_bounds, move_meta)
 
@@ -744,56 +731,38 @@ class Aggregator:
         """
         self._require_started()
         agents = self._agent_index(agents)
-        spec = self._spawn_spec(distribution, a, b, clearance)
+        spec = spawn_spec(distribution, a, b, clearance)
         slots = sorted({int(s) for s in self.agent_scene[agents]})
-        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawn_pools]
+        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
         if missing:
             self._fetch_spawn_pools_now(missing, spec)
-        draws = counter_draws(self._spawn_seed[agents], self._spawn_count[agents] + _occurrence(agents))
-        np.add.at(self._spawn_count, agents, np.uint64(1))  # an agent listed twice draws twice
+        draws = self._streams.draw(agents)
         out = np.empty((len(agents), 3), dtype=np.float64)
         slot_of = self.agent_scene[agents]
         for slot in slots:
             key = self._pool_key(slot, spec)
             mine = np.flatnonzero(slot_of == slot)
-            pool = self._spawn_pools[key]
-            out[mine] = pool[draws[mine] % len(pool)]
-            self._count_draws(slot, key, len(mine))
+            out[mine] = self._spawns.draw(key, draws[mine])
+            self._keep_fresh(key)
         return out
 
-    def _pool_key(self, slot: int, spec: tuple) -> tuple:
-        return (slot, self.table.slots[slot].source, spec)
+    def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
+        return PoolKey(slot, self.table.slots[slot].source, spec)
 
-    def _count_draws(self, slot: int, key: tuple, n: int) -> None:
+    def _keep_fresh(self, key: PoolKey) -> None:
         """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn."""
-        drawn = self._spawn_draws.get(key, 0) + n
-        self._spawn_draws[key] = drawn
-        size = len(self._spawn_pools[key])
-        s = self.table.slots[slot]
-        in_flight = [j for j in self._background if j.kind == "spawn" and j.spec == key]
-        if drawn >= size // 2 and not in_flight and key not in self._spawn_next and s.worker is not None:
-            self._spawn_generation[key] = self._spawn_generation.get(key, 0) + 1
-            self._background.append(self._spawn_job(slot, s.worker, s.key, s.source, key[2], refresh=True))
-        elif drawn >= size:
+        in_flight = [j.pending for j in self._background if isinstance(j, SpawnJob) and j.key == key]
+        s = self.table.slots[key.slot]
+        if self._spawns.wants_refresh(key, bool(in_flight)) and s.worker is not None:
+            self._background.append(self._spawns.fetch(key, s.worker, s.key, refresh=True))
+        elif self._spawns.used_up(key):
             if in_flight:  # bounded wait, so the same seed gives the same positions
-                self._pool.wait_any([[j.pending for j in in_flight]], self.pool_config.step_timeout_s)
+                self._pool.wait_any([in_flight], self.pool_config.step_timeout_s)
                 self._apply_background()
-            if key in self._spawn_next:
-                self._spawn_pools[key] = self._spawn_next.pop(key)
-                self._spawn_draws[key] = 0
+            self._spawns.replace(key)
 
-    def _spawn_job(self, slot: int, worker: str, scene_key: str, source: str, spec: tuple,
-                   refresh: bool = False) -> _Background:
-        distribution, a, b, clearance = spec
-        n = max(SPAWN_POOL_MIN, 8 * self.agents_per_scene)
-        generation = self._spawn_generation.get((slot, source, spec), 0)
-        seed = zlib.crc32(repr((self.seed, slot, source, spec, generation)).encode())
-        message = SampleSpawn(scene_key, n, clearance, distribution, a, b, seed).to_message()
-        (pending,) = self._pool.send([(worker, message)], self.pool_config.step_timeout_s)
-        return _Background("spawn", pending, slot, spec=(slot, source, spec), refresh=refresh)
-
-    def _finish_spawn(self, job: _Background, reply: Reply, still: list[_Background]) -> None:
-        slot, source, spec = job.spec  # type: ignore[misc]
+    def _finish_spawn(self, job: SpawnJob, reply: Reply) -> None:
+        slot, source, spec = job.key.slot, job.key.source, job.key.spec
         switch = self._pending_switch.get(slot)
         if reply.message is None:
             if switch is not None:  # the swap's scene is loaded but will not be used
@@ -806,27 +775,23 @@ class Aggregator:
             return
         positions = np.asarray(reply.message["positions"], dtype=np.float64).reshape(-1, 3)
         if len(positions) == 0:
-            raise RemoteError(reply.worker_id, "SceneError", f"no free spawn position in {source!r} for {spec}")
-        if job.refresh:
-            self._spawn_next[job.spec] = positions
-            return
-        self._spawn_pools[job.spec] = positions
-        self._spawn_draws[job.spec] = 0
-        if switch is not None and switch[0].source == source:
+            raise RemoteError(reply.worker_id, "SceneError", f"no free spawn position in {source!r} for {tuple(spec)}")
+        self._spawns.store(job, positions)
+        if not job.refresh and switch is not None and switch[0].source == source:
             switch[3].discard(spec)
             if not switch[3]:
                 del self._pending_switch[slot]
                 self._switch(slot, switch[0], switch[1], switch[2])
 
-    def _fetch_spawn_pools_now(self, slots: list[int], spec: tuple) -> None:
+    def _fetch_spawn_pools_now(self, slots: list[int], spec: SpawnSpec) -> None:
         """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""
         for _ in range(3):
-            jobs = [self._spawn_job(s, self.table.slots[s].worker, self.table.slots[s].key, self.table.slots[s].source, spec)
-                    for s in slots if self.table.slots[s].worker is not None]
+            jobs = [self._spawns.fetch(self._pool_key(s, spec), worker, self.table.slots[s].key)
+                    for s in slots if (worker := self.table.slots[s].worker) is not None]
             self._background.extend(jobs)
             self._pool.gather([j.pending for j in jobs])
             self._apply_background()
-            slots = [s for s in slots if self._pool_key(s, spec) not in self._spawn_pools]
+            slots = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
             if not slots:
                 return
             self._place_all_now()
@@ -836,32 +801,7 @@ class Aggregator:
         """Restart the spawn draws of ``agents`` (default: all): agent ``agents[i]`` draws from
         ``seeds[i]``; an int ``seed`` gives agent ``a`` the seed ``seed + a`` (as Gymnasium and SB3 seed
         sub-envs). The per-scene pools stay as they are."""
-        agents = self._agent_index(agents)
-        if np.ndim(seeds) == 0:
-            seeds = int(seeds) + agents
-        seeds = np.asarray(seeds, dtype=np.int64).reshape(-1)
-        if len(seeds) != len(agents):
-            raise ConfigError(f"reseed: {len(seeds)} seeds for {len(agents)} agents")
-        self._spawn_seed[agents] = seeds.astype(np.uint64)
-        self._spawn_count[agents] = 0
-
-    @staticmethod
-    def _spawn_spec(distribution: str, a: Sequence[float], b: Sequence[float], clearance: float) -> tuple:
-        problems = []
-        if distribution not in ("uniform", "normal"):
-            problems.append(f"distribution={distribution!r} must be 'uniform' or 'normal'")
-        va, vb = np.asarray(a, dtype=np.float64).ravel(), np.asarray(b, dtype=np.float64).ravel()
-        if va.shape != (3,) or vb.shape != (3,) or not (np.all(np.isfinite(va)) and np.all(np.isfinite(vb))):
-            problems.append(f"a={a!r} and b={b!r} must be 3 finite numbers each")
-        elif distribution == "uniform" and np.any(va > vb):
-            problems.append(f"uniform low a={list(va)} must not exceed high b={list(vb)}")
-        elif distribution == "normal" and np.any(vb < 0):
-            problems.append(f"normal std b={list(vb)} must be non-negative")
-        if not 0 <= float(clearance) <= 100:
-            problems.append(f"clearance={clearance!r} must be in [0, 100] m")
-        if problems:
-            raise ConfigError("invalid spawn request: " + "; ".join(problems))
-        return (distribution, tuple(va.tolist()), tuple(vb.tolist()), float(clearance))
+        self._streams.reseed(self._agent_index(agents), seeds)
 
     # ----- scene swapping --------------------------------------------------------------------
 
@@ -920,7 +860,7 @@ class Aggregator:
                 time.sleep(max(0.0, min(self._full[w][0] for w in live) - time.monotonic()))
                 continue
             self._send_loads(self.table.plan_placement(placeable, {w: self._pool.generation(w) for w in live}))
-            jobs = [j for j in self._background if j.kind == "load"]
+            jobs = [j for j in self._background if isinstance(j, LoadJob)]
             self._pool.gather([j.pending for j in jobs])
             self._apply_background()
         raise NoWorkersError(f"run {self.run_id!r}: could not place scenes after repeated worker failures")
