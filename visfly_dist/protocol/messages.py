@@ -104,6 +104,14 @@ class StepRequest:
 
     type = "step"
     __slots__ = ("keys", "counts", "poses", "times", "render", "query", "search_radius", "image_segment")
+    keys: tuple[str, ...]
+    counts: np.ndarray
+    poses: np.ndarray
+    times: np.ndarray
+    render: bool
+    query: bool
+    search_radius: float
+    image_segment: SegmentTarget | None
 
     def __init__(self, scenes: Sequence[ScenePoses] = (), render: bool = True, query: bool = True,
                  search_radius: float = 5.0, image_segment: SegmentTarget | None = None) -> None:

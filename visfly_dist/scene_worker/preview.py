@@ -78,13 +78,13 @@ def viewpoints(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     center = (low + high) / 2
     meta = scene.metadata
     target = next((np.asarray(meta[k], dtype=np.float64) for k in ("goal", "pad_center") if k in meta), center)
-    eyes = []
+    points = []
     if "start_region" in meta:
-        eyes.append(np.mean(np.asarray(meta["start_region"], dtype=np.float64), axis=0))
+        points.append(np.mean(np.asarray(meta["start_region"], dtype=np.float64), axis=0))
     inset = 0.08 * (high - low)
-    eyes.append(np.array([low[0] + inset[0], low[1] + inset[1], high[2] - inset[2]]))
-    eyes.append(np.array([high[0] - inset[0], high[1] - inset[1], high[2] - inset[2]]))
-    eyes = np.array(eyes)
+    points.append(np.array([low[0] + inset[0], low[1] + inset[1], high[2] - inset[2]]))
+    points.append(np.array([high[0] - inset[0], high[1] - inset[1], high[2] - inset[2]]))
+    eyes = np.array(points)
     targets = np.array([target] + [center] * (len(eyes) - 1)) if "start_region" in meta else np.tile(center, (len(eyes), 1))
     poses = np.array([np.concatenate([eye, look_at_quaternion(eye, aim)]) for eye, aim in zip(eyes, targets)])
     return eyes, poses
@@ -102,8 +102,11 @@ def look_at_quaternion(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 def _segmentation_rgb(ids: np.ndarray) -> np.ndarray:
     """Distinct colours per object id (a fixed hash), black for 0."""
     import matplotlib
+    from matplotlib.colors import ListedColormap
 
-    palette = (np.asarray(matplotlib.colormaps["tab20"].colors) * 255).astype(np.uint8)
+    tab20 = matplotlib.colormaps["tab20"]
+    assert isinstance(tab20, ListedColormap)  # a list of 20 colours
+    palette = (np.asarray(tab20.colors) * 255).astype(np.uint8)
     rgb = palette[(ids.astype(np.int64) * 7) % len(palette)]
     rgb[ids == 0] = 0
     return rgb
@@ -124,21 +127,24 @@ def _top_down_map(ax, scene: Scene, eyes: np.ndarray) -> None:
         colors.append(face_colors[below_ceiling])
         heights.append(triangles[below_ceiling, :, 2].max(axis=1))
     order = np.argsort(np.concatenate(heights), kind="stable")
-    ax.add_collection(PolyCollection(np.concatenate(polygons)[order], facecolors=np.concatenate(colors)[order] / 255.0,
+    # a 3-D array of polygons is PolyCollection's fast path (its stubs say a sequence of them)
+    ax.add_collection(PolyCollection(np.concatenate(polygons)[order],  # type: ignore[arg-type]
+                                     facecolors=np.concatenate(colors)[order] / 255.0,
                                      edgecolors="none"))
     ax.add_patch(Rectangle(low[:2], *(high - low)[:2], fill=False, edgecolor="black", linestyle="--", label="bounds"))
     meta = scene.metadata
     for key, color in (("start_region", "tab:green"), ("goal_region", "tab:red")):
         if key in meta:
             region = np.asarray(meta[key], dtype=np.float64)
-            ax.add_patch(Rectangle(region[0, :2], *(region[1] - region[0])[:2], fill=False, edgecolor=color, lw=2, label=key))
+            ax.add_patch(Rectangle((region[0, 0], region[0, 1]), *(region[1] - region[0])[:2], fill=False, edgecolor=color,
+                                   lw=2, label=key))
     for key, marker in (("goal", "*"), ("pad_center", "s"), ("gap_center", "D")):
         if key in meta:
             ax.plot(*np.asarray(meta[key])[:2], marker, color="tab:red", ms=12, label=key)
     if "targets" in meta:
         ax.plot(*np.asarray(meta["targets"])[:, :2].T, "x", color="tab:red", ms=10, label="targets")
-    for k, obj in enumerate(scene.moving_objects):   # their paths, dotted
-        path = obj.motion.position(np.linspace(0.0, obj.motion.period, 201))[:, :2]
+    for k, motion in enumerate(o.motion for o in scene.objects if o.motion is not None):   # their paths, dotted
+        path = motion.position(np.linspace(0.0, motion.period, 201))[:, :2]
         ax.plot(*path.T, ":", color="tab:orange", lw=1,
                 label="moving obstacle paths" if k == 0 else None)
     for i, eye in enumerate(eyes):

@@ -44,7 +44,7 @@ radius.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import fcl
 import numpy as np
@@ -114,9 +114,11 @@ class ObstacleQueries:
         self._max_threads = threads or min(8, usable_cores())
         self._moving = [(ObstacleQueries(Scene(o.name, [SceneObject(o.name, o.object_id, o.mesh)], scene.bounds),
                                          drone_radius, backend), o.motion, o.bounding_radius,
-                         cKDTree(o.motion.path_points(SWEEP_SPACING))) for o in scene.moving_objects]
+                         cKDTree(o.motion.path_points(SWEEP_SPACING))) for o in scene.objects if o.motion is not None]
         objects = [o for o in scene.static_objects if len(o.mesh.faces)]
-        self._bvh = self._embree = self._native = None
+        self._bvh: Any = None  # fcl.CollisionObject (fcl is untyped)
+        self._embree: Any = None  # embreex's EmbreeScene of the solids (untyped)
+        self._native: render_native.NativeMesh | None = None
         if not objects:
             return
         starts = np.cumsum([0] + [len(o.mesh.vertices) for o in objects])
@@ -293,25 +295,25 @@ def query_scenes(items: Sequence[tuple[ObstacleQueries, np.ndarray, float]], sea
     starts = ends - counts
     dist = np.full(len(positions), np.inf)
     points = positions.copy()
-    native = [k for k, (q, _, _) in enumerate(items) if q._native is not None and counts[k]]
+    native = [(k, q._native) for k, (q, _, _) in enumerate(items) if q._native is not None and counts[k]]
     if native:
-        rows = np.concatenate([np.arange(starts[k], ends[k]) for k in native])
-        group = np.repeat(np.arange(len(native), dtype=np.int32), [counts[k] for k in native])
-        threads = min(items[native[0]][0]._max_threads, -(-len(rows) // POSITIONS_PER_THREAD))
-        dist[rows], points[rows] = render_native.closest_many([items[k][0]._native for k in native], group,
+        rows = np.concatenate([np.arange(starts[k], ends[k]) for k, _ in native])
+        group = np.repeat(np.arange(len(native), dtype=np.int32), [counts[k] for k, _ in native])
+        threads = min(items[native[0][0]][0]._max_threads, -(-len(rows) // POSITIONS_PER_THREAD))
+        dist[rows], points[rows] = render_native.closest_many([mesh for _, mesh in native], group,
                                                                positions[rows], threads)
     inside = np.zeros(len(positions), bool)
     radius = np.repeat([q.drone_radius for q, _, _ in items], counts) if items else np.zeros(0)
     for k, (q, _, _) in enumerate(items):
         if not counts[k]:
             continue
-        rows = slice(starts[k], ends[k])
+        span = slice(starts[k], ends[k])
         if q._native is None:
-            dist[rows], points[rows] = q._closest(positions[rows])
-        if q._embree is not None and (dist[rows] <= q._max_depth).any():
-            inside[rows] = q._inside(positions[rows], dist[rows])
+            dist[span], points[span] = q._closest(positions[span])
+        if q._embree is not None and (dist[span] <= q._max_depth).any():
+            inside[span] = q._inside(positions[span], dist[span])
         if q._moving:
-            q._add_moving(positions[rows], times[k], dist[rows], points[rows], inside[rows])
+            q._add_moving(positions[span], times[k], dist[span], points[span], inside[span])
     return _answers(positions, dist, points, inside, radius, search_radius)
 
 

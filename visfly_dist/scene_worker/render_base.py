@@ -32,7 +32,7 @@ import ctypes.util
 import functools
 import importlib.util
 import logging
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -103,7 +103,8 @@ def _render_all(items: Sequence[tuple], outs: Sequence[dict[str, np.ndarray] | N
     checked = [(r, r._checked_poses(poses, show), bool(show), checked_time(time[0]) if time else 0.0)
                for r, poses, show, *time in items]
     results: list[dict[str, np.ndarray] | None] = [None] * len(checked)
-    plans, later, joint_time = [], [], {}
+    plans, later = [], []
+    joint_time: dict[int, float] = {}  # id(renderer) -> the time of its first native batch
     mounts = _camera_poses_of_all(checked)
     for k, (r, poses, show, time) in enumerate(checked):
         native = len(poses) and getattr(r, "tracer", None) == "native"
@@ -258,7 +259,7 @@ def resolve_backend(requested: str, cameras: Sequence[CameraSpec]) -> str:
 
 
 def make_renderer(backend: str, scene: Scene, cameras: Sequence[CameraSpec], drone_radius: float = 0.1,
-                  threads: int | None = None, **options: object) -> Renderer:
+                  threads: int | None = None, **options: Any) -> Renderer:
     """Build a renderer.
 
     Args:

@@ -177,11 +177,12 @@ def _texture(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 def _corner_colors(mesh: trimesh.Trimesh) -> np.ndarray:
     """Corner colours ``(F, 3, 3)`` of an untextured mesh: vertex colours, else face colours, else grey."""
     visual = mesh.visual
-    kind = getattr(visual, "kind", None)
-    if kind == "vertex":
-        return np.asarray(visual.vertex_colors, np.float32)[:, :3][mesh.faces]
-    if kind == "face":
-        return np.repeat(np.asarray(visual.face_colors, np.float32)[:, None, :3], 3, axis=1)
+    if isinstance(visual, trimesh.visual.ColorVisuals):
+        kind = visual.kind
+        if kind == "vertex":
+            return np.asarray(visual.vertex_colors, np.float32)[:, :3][mesh.faces]
+        if kind == "face":
+            return np.repeat(np.asarray(visual.face_colors, np.float32)[:, None, :3], 3, axis=1)
     if isinstance(visual, trimesh.visual.TextureVisuals) and visual.material is not None:
         color = np.asarray(visual.material.main_color, np.float32)[:3]
         return np.broadcast_to(color, (len(mesh.faces), 3, 3)).copy()
