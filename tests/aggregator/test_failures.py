@@ -91,6 +91,6 @@ def test_an_unload_lost_on_the_way_is_retried_and_a_delivered_one_is_not():
         served = agg.table.slots[0].key
         agg._send_unloads([("ghost", "old-key"), (worker, "never-loaded")])
         wait_for(lambda: (agg._apply_background(), not agg.background_busy())[1], 20)
-        assert agg._stale == {"ghost": {"old-key"}}  # no such worker: no reply, kept for a retry
+        assert agg._moves.stale == {"ghost": {"old-key"}}  # no such worker: no reply, kept for a retry
         held = {h["worker_id"]: h.get("scenes") for h in agg.health()}
         assert held == {worker: [served]}  # the answered unload (unknown scene) changed nothing

@@ -46,22 +46,15 @@ from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
 from visfly_dist.aggregator.image_shm import ImageSegments, StepImages
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
-from visfly_dist.aggregator.slots import Move, SlotTable
+from visfly_dist.aggregator.scene_moves import LoadJob, PendingSwitch, ReconcileJob, SceneMoves, UnloadJob
+from visfly_dist.aggregator.slots import SlotTable
 from visfly_dist.aggregator.spawn_pools import AgentStreams, PoolKey, SpawnJob, SpawnPools, SpawnSpec, spawn_spec
 from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.protocol.messages import Health, LoadScene, UnloadScene, step_message
+from visfly_dist.protocol.messages import Health, step_message
 
 log = logging.getLogger(__name__)
 
-LOAD_QUEUE_ALLOWANCE_S = 2.0
-"""Seconds added to a load's deadline for every load queued before it on the same worker (a garage
-takes about 0.3 s on one core): 256 scenes placed on 2 workers at start-up must not time out
-behind each other."""
-
-UNLOAD_DELAY_COLLECTS = 2
-OVERLOADED_BACKOFF_S = (1.0, 30.0)
-"""First and longest wait before a worker that answered ``overloaded`` is given a new scene again."""
 MAX_CACHED_PLANS = 8
 """Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
@@ -116,33 +109,6 @@ class StepTicket:
     collected: bool = False
 
 
-@dataclass
-class LoadJob:
-    """A scene load for a move, in flight."""
-
-    pending: Pending
-    slot: int
-    move: Move
-
-
-@dataclass
-class UnloadJob:
-    """An unload of ``key`` on ``worker``, in flight."""
-
-    pending: Pending
-    worker: str
-    key: str
-
-
-@dataclass
-class ReconcileJob:
-    """A health request asking ``worker`` (at ``generation``) which scenes it holds, in flight."""
-
-    pending: Pending
-    worker: str
-    generation: int
-
-
 Job = LoadJob | SpawnJob | UnloadJob | ReconcileJob
 """A request the aggregator does not wait for."""
 
@@ -192,14 +158,7 @@ class Aggregator:
         self.agent_scene = self.table.agent_scene
         self._last = blank_observation(cameras, self.num_agents, self.search_radius)
         self._last_private = True  # False while _last is an observation handed out by collect()
-        self._switched = np.zeros(self.num_agents, dtype=bool)
         self._background: list[Job] = []
-        self._unloads: list[tuple[int, str, str]] = []  # (due collect, worker, key)
-        self._stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
-        self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
-        self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
-        self._collects = 0
-        self._pending_switch: dict[int, tuple[Move, Any, dict[str, Any], set]] = {}
         self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]] = {}
         self._plans_revision = -1
         self._settled: tuple[int, tuple] | None = None  # (table revision, live generations) of a pass with nothing to do
@@ -207,6 +166,8 @@ class Aggregator:
         self.reseed(self.seed)
         self._pool = WorkerPool(pool, self.run_id)
         self._spawns = SpawnPools(self._pool, self.agents_per_scene, self.seed, pool.step_timeout_s)
+        self._moves = SceneMoves(self._pool, self.table, self.dataset, pool, cameras, self.drone_radius,
+                                 self.multi_agent, self.run_id)
         self._images = ImageSegments(self.run_id, cameras) if pool.shared_memory else None
         self._started = False
         self._closed = False
@@ -416,7 +377,7 @@ class Aggregator:
         fresh = np.flatnonzero(~ticket.obs.lost)
         self._remember(ticket.obs, fresh, ticket.agents[fresh])
         assemble_s = time.perf_counter() - t0
-        self._collects += 1
+        self._moves.note_collect()
         self._apply_background()
         ticket.obs.timings = self._timings(ticket.timings, worker_timings, assemble_s,
                                            time.perf_counter() - ticket.started)
@@ -438,8 +399,7 @@ class Aggregator:
 
     def take_switched(self) -> np.ndarray:
         """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
-        out, self._switched = self._switched, np.zeros(self.num_agents, dtype=bool)
-        return out
+        return self._moves.take_switched()
 
     def _remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
         """Keep the fresh rows as the agents' last good data.
@@ -512,54 +472,6 @@ class Aggregator:
 
     # ----- failures --------------------------------------------------------------------------
 
-    def _orphan(self, worker: str, reason: str) -> None:
-        """Orphan ``worker``'s slots; remember their keys, to unload them if it comes back with them."""
-        for slot in self.table.slots:
-            if slot.worker == worker:
-                self._stale.setdefault(worker, set()).add(slot.key)
-        for slot in self.table.orphan_worker(worker):
-            log.warning("run %s: slot %d left worker %s (%s)", self.run_id, slot, worker, reason)
-
-    def _unload_stale(self, live: Sequence[str]) -> None:
-        """A worker that dropped off the network and rejoined still holds scenes it no longer serves:
-        unload them (a restarted one answers ``unknown_scene``, which is fine)."""
-        back = [w for w in live if w in self._stale]
-        self._send_unloads([(w, k) for w in back for k in sorted(self._stale.pop(w))])
-
-    def _reconcile(self, gens: dict[str, int]) -> None:
-        """Ask each worker that (re)appeared which scenes it holds (a background health request);
-        :meth:`_finish_reconcile` unloads those the run does not know of. Replies lost in an outage
-        (a router killed while loads were in flight) leave such scenes behind."""
-        due = [w for w, g in gens.items() if self._reconciled.get(w) != g]
-        for w in due:
-            self._reconciled[w] = gens[w]
-        requests = [(w, Health().to_message()) for w in due]
-        for wid, pending in zip(due, self._pool.send(requests, self.pool_config.step_timeout_s) if due else []):
-            self._background.append(ReconcileJob(pending, wid, gens[wid]))
-
-    def _finish_reconcile(self, job: ReconcileJob, reply: Reply) -> None:
-        worker, generation = job.worker, job.generation
-        if reply.message is None:  # asked again when it is next seen (its failures are handled where it serves)
-            if self._reconciled.get(worker) == generation:
-                del self._reconciled[worker]
-            return
-        known = {s.key for s in self.table.slots if s.worker == worker}
-        known |= {s.move.key for s in self.table.slots if s.move is not None and s.move.worker == worker}
-        known |= {k for _, w, k in self._unloads if w == worker} | self._stale.get(worker, set())
-        known |= {j.key for j in self._background if isinstance(j, UnloadJob) and j.worker == worker}
-        unknown = sorted((set(reply.message.get("scenes", [])) | set(reply.message.get("loading", []))) - known)
-        if unknown:
-            log.warning("run %s: worker %s holds scenes %s that the run does not serve (their load replies "
-                        "were lost); unloading them", self.run_id, worker, unknown)
-            self._send_unloads([(worker, k) for k in unknown])
-
-    def _send_unloads(self, targets: Sequence[tuple[str, str]]) -> None:
-        """Ask each ``(worker, key)`` to unload in the background; one that gets no reply is retried
-        when the worker is next seen live (:meth:`_apply_background`)."""
-        requests = [(w, UnloadScene(k).to_message()) for w, k in targets]
-        for (worker, key), pending in zip(targets, self._pool.send(requests, self.pool_config.step_timeout_s) if requests else []):
-            self._background.append(UnloadJob(pending, worker, key))
-
     def _handle_failure(self, reply: Reply, slots: Sequence[int] = ()) -> None:
         """The one failure policy: what a failed or refused request does to its worker and slots."""
         if reply.error is not None and not is_unknown_scene(reply.error):
@@ -570,7 +482,7 @@ class Aggregator:
             reason = reply.failure or "failed"
             others = [w for w in self._pool.live_workers() if w != reply.worker_id]
             self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
-        self._orphan(reply.worker_id, reason)
+        self._moves.orphan(reply.worker_id, reason)
 
     # ----- background work -------------------------------------------------------------------
 
@@ -580,26 +492,26 @@ class Aggregator:
         self._pool.recheck_banned()
         live = self._pool.live_workers()
         gens = {w: self._pool.generation(w) for w in live}
-        self._reconcile(gens)
+        self._background.extend(self._moves.reconcile(gens))
         settled = (self.table.revision, tuple(gens.items()))
-        if settled == self._settled and not (self._background or self._stale or self._pending_switch):
+        if settled == self._settled and not (self._background or self._moves.stale or self._moves.switching):
             return  # nothing changed since a pass that found nothing to do: it would find nothing again
         for s in self.table.slots:
             if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
                 why = "liveliness token gone" if s.worker not in gens else "restarted"
-                self._orphan(s.worker, why)
-        self._unload_stale(live)
+                self._moves.orphan(s.worker, why)
+        self._send_unloads(self._moves.take_stale(live))
         if not live:
             live = self._wait_out_outage()
             gens = {w: self._pool.generation(w) for w in live}
-        placeable = self._placeable(live)
+        placeable = self._moves.placeable(live)
         plan = self.table.plan_placement(placeable, gens)
         if not plan and not self.table.orphans():
             # also while loads run (navigation's swaps keep some running): a move in flight counts on
             # its target and its slot is not moved again, so a rejoining worker gets its share now
             plan = self.table.plan_rebalance(placeable, gens)
-        self._send_loads(plan)
-        busy = plan or self._background or self._pending_switch or len(placeable) < len(live)
+        self._background.extend(self._moves.send_loads(plan))
+        busy = plan or self._background or self._moves.switching or len(placeable) < len(live)
         self._settled = None if busy else (self.table.revision, tuple(gens.items()))
 
     def _wait_out_outage(self) -> list[str]:
@@ -615,27 +527,10 @@ class Aggregator:
                 + (f"; {self._pool.startup_report()}" if self._pool.startup_report() else ""))
         return live
 
-    def _send_loads(self, plan: list[tuple[int, Move]]) -> None:
-        if not plan:
-            return
-        queued: dict[str, int] = {}  # loads sent to each worker so far in this batch
-        for slot, move in plan:
-            ahead = queued.get(move.worker, 0)
-            queued[move.worker] = ahead + 1
-            # a worker loads one scene at a time: this load may first wait for the ones ahead of it
-            timeout_s = self.pool_config.startup_timeout_s + ahead * LOAD_QUEUE_ALLOWANCE_S
-            request = LoadScene(move.key, move.source, self.cameras, self.drone_radius, self.multi_agent).to_message()
-            (pending,) = self._pool.send([(move.worker, request)], timeout_s)
-            self._background.append(LoadJob(pending, slot, move))
-        log.info("run %s: loading in the background: %s", self.run_id,
-                 [(slot, move.worker, move.reason) for slot, move in plan])
-
     def _apply_background(self) -> None:
-        """Take in every finished background request; switch slots whose scene (and spawns) are ready."""
-        due = [(w, k) for c, w, k in self._unloads if c <= self._collects]
-        self._unloads = [u for u in self._unloads if u[0] > self._collects]
-        self._send_unloads(due)
-        still = []
+        """Take in every finished background request, in the order they were sent; send the unloads due."""
+        self._send_unloads(self._moves.due_unloads())
+        still: list[Job] = []
         for job in self._background:
             if not job.pending.done():
                 still.append(job)
@@ -646,75 +541,46 @@ class Aggregator:
             elif isinstance(job, SpawnJob):
                 self._finish_spawn(job, reply)
             elif isinstance(job, ReconcileJob):
-                self._finish_reconcile(job, reply)
-            elif reply.failure is not None:  # an unload lost on the way (a flapping link): try again later
-                self._stale.setdefault(job.worker, set()).add(job.key)
+                unloading = {j.key for j in self._background if isinstance(j, UnloadJob) and j.worker == job.worker}
+                self._send_unloads(self._moves.finish_reconcile(job, reply, unloading))
+            else:
+                self._moves.finish_unload(job, reply)
         self._background = still
 
+    def _send_unloads(self, targets: Sequence[tuple[str, str]]) -> None:
+        """Unload each ``(worker, key)`` in the background (:meth:`SceneMoves.send_unloads`)."""
+        self._background.extend(self._moves.send_unloads(targets))
+
     def _finish_load(self, job: LoadJob, reply: Reply, still: list[Job]) -> None:
+        """A load answered: its slot switches (a swap once the new scene's spawn pools are in). What
+        a failed load does depends on why it failed."""
         move = job.move
         if reply.message is None:
             self.table.fail_move(job.slot, move)
             if reply.error is not None and reply.error.code == ErrorCode.SCENE_ERROR:
-                self._drop_source(job.slot, move, reply.error)
+                self._moves.drop_source(job.slot, move, reply.error)
                 return
             if reply.error is not None and reply.error.code == ErrorCode.OVERLOADED:
-                self._back_off(move.worker, reply.error)
+                self._moves.back_off(move.worker, reply.error)
                 return
             if reply.error is not None and not is_unknown_scene(reply.error):
                 raise RemoteError(move.worker, reply.error.error_type,
                                   f"loading {move.source!r} into slot {job.slot}: {reply.error.message}")
             if reply.failure is not None:  # the load may still end on the worker: unload it when it is back
-                self._stale.setdefault(move.worker, set()).add(move.key)
+                self._moves.mark_stale(move.worker, move.key)
             self._handle_failure(reply)
             return
         if self.table.slots[job.slot].move is not move:  # cancelled (its worker failed meanwhile): not used
-            self._stale.setdefault(move.worker, set()).add(move.key)
+            self._moves.mark_stale(move.worker, move.key)
             return
-        move_bounds = reply.message["bounds"]
-        move_meta = reply.message.get("metadata", {})
+        bounds, metadata = reply.message["bounds"], reply.message.get("metadata", {})
         specs = self._spawns.specs_of(job.slot)
         if move.reason == "swap" and specs:
             # The new scene's spawn pools come first, so resets never wait for them.
-            self._pending_switch[job.slot] = (move, move_bounds, move_meta, set(specs))
-            for spec in specs:
-                still.append(self._spawns.fetch(PoolKey(job.slot, move.source, spec), move.worker, move.key))
+            self._moves.await_pools(job.slot, PendingSwitch(move, bounds, metadata, set(specs)))
+            still.extend(self._spawns.fetch(PoolKey(job.slot, move.source, spec), move.worker, move.key) for spec in specs)
             return
-        self._switch(job.slot, move, move_bounds, move_meta)
-
-    def _drop_source(self, slot: int, move: Move, error: RemoteError) -> None:
-        """A source that cannot load (``scene_error``) leaves the dataset; an orphan slot that waited
-        for it takes the next source. The run fails only when no source is left."""
-        why = f"{error.message} (worker {move.worker})"
-        log.warning("run %s: scene source %r cannot be loaded and is dropped from the dataset: %s",
-                    self.run_id, move.source, why)
-        if not self.dataset.drop(move.source, why):
-            raise ConfigError(f"run {self.run_id!r}: no scene source can be loaded: "
-                              + "; ".join(f"{src!r}: {w}" for src, w in self.dataset.dropped.items()))
-        s = self.table.slots[slot]
-        if s.worker is None and s.source == move.source:
-            s.source = self.dataset.next_source()
-
-    def _back_off(self, worker: str, error: RemoteError) -> None:
-        """A worker that is full (``overloaded``) gets no new scene for a while (doubling per refusal)."""
-        _, wait = self._full.get(worker, (0.0, OVERLOADED_BACKOFF_S[0] / 2))
-        wait = min(2 * wait, OVERLOADED_BACKOFF_S[1])
-        self._full[worker] = (time.monotonic() + wait, wait)
-        log.warning("run %s: worker %s is full (%s); no new scene for it for %g s", self.run_id, worker,
-                    error.message, wait)
-
-    def _placeable(self, live: Sequence[str]) -> list[str]:
-        """The live workers that may take new scenes now (not backing off after ``overloaded``)."""
-        now = time.monotonic()
-        return [w for w in live if self._full.get(w, (0.0, 0.0))[0] <= now]
-
-    def _switch(self, slot: int, move: Move, bounds: Any, metadata: dict[str, Any]) -> None:
-        old_worker, old_key = self.table.finish_move(slot, move, bounds, metadata)
-        if old_worker is not None and old_key != move.key:
-            self._unloads.append((self._collects + UNLOAD_DELAY_COLLECTS, old_worker, old_key))
-        if move.reason == "swap":
-            self._switched[self.table.agents_of(slot)] = True
-            log.info("run %s: slot %d now holds %s", self.run_id, slot, move.source)
+        self._moves.switch(job.slot, move, bounds, metadata)
 
     # ----- spawn sampling --------------------------------------------------------------------
 
@@ -762,26 +628,20 @@ class Aggregator:
             self._spawns.replace(key)
 
     def _finish_spawn(self, job: SpawnJob, reply: Reply) -> None:
-        slot, source, spec = job.key.slot, job.key.source, job.key.spec
-        switch = self._pending_switch.get(slot)
+        """A pool arrived (a swap waiting for it may switch now), or the failure policy for its request."""
         if reply.message is None:
-            if switch is not None:  # the swap's scene is loaded but will not be used
-                self.table.fail_move(slot, switch[0])
-                self._stale.setdefault(switch[0].worker, set()).add(switch[0].key)
-                del self._pending_switch[slot]
+            self._moves.cancel_switch(job.key.slot)  # a swap's scene that is loaded but will not be used
             if reply.error is not None and not is_unknown_scene(reply.error):
                 raise reply.error
             self._handle_failure(reply)
             return
         positions = np.asarray(reply.message["positions"], dtype=np.float64).reshape(-1, 3)
         if len(positions) == 0:
-            raise RemoteError(reply.worker_id, "SceneError", f"no free spawn position in {source!r} for {tuple(spec)}")
+            raise RemoteError(reply.worker_id, "SceneError",
+                              f"no free spawn position in {job.key.source!r} for {tuple(job.key.spec)}")
         self._spawns.store(job, positions)
-        if not job.refresh and switch is not None and switch[0].source == source:
-            switch[3].discard(spec)
-            if not switch[3]:
-                del self._pending_switch[slot]
-                self._switch(slot, switch[0], switch[1], switch[2])
+        if not job.refresh:
+            self._moves.pool_ready(job.key)
 
     def _fetch_spawn_pools_now(self, slots: list[int], spec: SpawnSpec) -> None:
         """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""
@@ -818,16 +678,7 @@ class Aggregator:
             return
         counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
         gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
-        plan = []
-        for index in np.flatnonzero(counts).tolist():
-            slot = self.table.slots[index]
-            slot.resets += int(counts[index])
-            if slot.resets >= every and slot.move is None:
-                slot.resets = 0
-                move = self.table.plan_swap(slot.index, self.dataset.next_source(), gens)
-                if move is not None:
-                    plan.append((slot.index, move))
-        self._send_loads(plan)
+        self._background.extend(self._moves.start_swaps(counts, every, gens))
 
     # ----- health ----------------------------------------------------------------------------
 
@@ -855,11 +706,12 @@ class Aggregator:
             if not self.table.orphans():
                 return
             live = self._pool.require_live()
-            placeable = self._placeable(live)
+            placeable = self._moves.placeable(live)
             if not placeable:  # every worker is full for now: wait for the first backoff to end
-                time.sleep(max(0.0, min(self._full[w][0] for w in live) - time.monotonic()))
+                time.sleep(max(0.0, self._moves.full_until(live) - time.monotonic()))
                 continue
-            self._send_loads(self.table.plan_placement(placeable, {w: self._pool.generation(w) for w in live}))
+            gens = {w: self._pool.generation(w) for w in live}
+            self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens)))
             jobs = [j for j in self._background if isinstance(j, LoadJob)]
             self._pool.gather([j.pending for j in jobs])
             self._apply_background()
