@@ -12,6 +12,7 @@ import functools
 import importlib
 import os
 
+from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.session import ZENOH_CONFIG_ENV, add_zenoh_config_argument, load_config_file, resolve_config_file
 
 BENCHMARKS: dict[str, tuple[str, str]] = {
@@ -38,6 +39,8 @@ def _with_zenoh_config(run, args: argparse.Namespace) -> int:
     """Run a benchmark with ``--zenoh-config`` exported as ``$ZENOH_CONFIG`` (checked first)."""
     if args.zenoh_config is not None:
         path = resolve_config_file(args.zenoh_config)
+        if path is None:  # an empty --zenoh-config and no $ZENOH_CONFIG
+            raise ConfigError(f"--zenoh-config {args.zenoh_config!r} names no file")
         load_config_file(path)
         os.environ[ZENOH_CONFIG_ENV] = path
     return run(args)

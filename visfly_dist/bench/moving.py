@@ -34,6 +34,7 @@ def moving_rows(moving: int, agents: int, reps: int, seed: int = 0, res: int = 6
     from visfly_dist.bench.common import DRONE_RADIUS, bench_poses
     from visfly_dist.scene_worker.queries import ObstacleQueries
     from visfly_dist.scene_worker.render_base import available_backends, make_renderer
+    from visfly_dist.scene_worker.render_raycast import RaycastRenderer
     from visfly_dist.scenes import generate_scene
 
     if "raycast" not in available_backends():
@@ -48,6 +49,7 @@ def moving_rows(moving: int, agents: int, reps: int, seed: int = 0, res: int = 6
     renderers = [make_renderer("raycast", scene, [cam], DRONE_RADIUS) for scene in [world, *statics]]
     try:
         queries = [ObstacleQueries(scene, DRONE_RADIUS) for scene in [world, *statics]]
+        assert isinstance(renderers[0], RaycastRenderer)  # what make_renderer("raycast", ...) builds
         tracer = renderers[0].tracer
         for rep in range(reps + INSTANTS):   # the first round warms every renderer up
             k = rep % INSTANTS
@@ -65,7 +67,7 @@ def moving_rows(moving: int, agents: int, reps: int, seed: int = 0, res: int = 6
         for renderer in renderers:
             renderer.close()
     med = {key: float(np.median(v)) for key, v in timings.items()}
-    rows = []
+    rows: list[dict[str, Any]] = []
     for what, parts in (("render", ("render",)), ("render+queries", ("render", "queries"))):
         s = sum(med[("static", p)] for p in parts)
         m = sum(med[("moving", p)] for p in parts)

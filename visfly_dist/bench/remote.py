@@ -70,13 +70,15 @@ def start_proxy(target_port: int, delay_ms: float, timeout_s: float = 30.0) -> t
             "--delay-ms", str(delay_ms)]
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             start_new_session=True)
-    ready, _, _ = select.select([proc.stdout], [], [], timeout_s)
-    line = proc.stdout.readline().decode(errors="replace").strip() if ready else ""
+    stdout = proc.stdout
+    assert stdout is not None  # stdout=PIPE
+    ready, _, _ = select.select([stdout], [], [], timeout_s)
+    line = stdout.readline().decode(errors="replace").strip() if ready else ""
     prefix = "delay proxy listening on "
     if not line.startswith(prefix):
         proc.kill()
         rest = proc.communicate()[0].decode(errors="replace")
-        proc.stdout.close()
+        stdout.close()
         raise RuntimeError(f"the delay proxy did not start within {timeout_s} s: {line}{rest}"[-2000:])
     return proc, line[len(prefix):]
 
@@ -165,7 +167,8 @@ class RemoteWorkers:
         except subprocess.TimeoutExpired:
             self._proxy.kill()
             self._proxy.wait()
-        self._proxy.stdout.close()
+        if self._proxy.stdout is not None:  # start_proxy reads its stdout (a pipe)
+            self._proxy.stdout.close()
         shutil.rmtree(self._log_dir, ignore_errors=True)
 
     def __enter__(self) -> "RemoteWorkers":

@@ -186,13 +186,13 @@ def goal_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 def _time_in_process(backend: str, tracer: str | None, threads: int | None, world: Any, cam: CameraSpec,
                      poses: np.ndarray, reps: int) -> tuple[float, float]:
     """Median wall seconds and median CPU seconds (every thread of this process) of one render call."""
-    from visfly_dist.scene_worker.render_base import make_renderer
+    from visfly_dist.scene_worker.render_base import Renderer, make_renderer
 
     options = {"tracer": tracer} if tracer else {}
     if backend == LEGACY_EGL:
         from visfly_dist.scene_worker.render_egl_legacy import LegacyEglRenderer
 
-        renderer = LegacyEglRenderer(world, [cam], drone_radius=DRONE_RADIUS)
+        renderer: Renderer = LegacyEglRenderer(world, [cam], drone_radius=DRONE_RADIUS)
     else:
         renderer = make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS, threads=threads, **options)
     with renderer:
@@ -317,10 +317,12 @@ def _worker_process(backend: str, threads: int) -> Iterator[tuple[str, str]]:
                 "--threads", str(threads)]
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=err,
                                 start_new_session=True)
+        stdout = proc.stdout
+        assert stdout is not None  # stdout=PIPE
         try:
             with selectors.DefaultSelector() as sel:
-                sel.register(proc.stdout, selectors.EVENT_READ)
-                line = proc.stdout.readline().decode(errors="replace") if sel.select(WORKER_READY_S) else ""
+                sel.register(stdout, selectors.EVENT_READ)
+                line = stdout.readline().decode(errors="replace") if sel.select(WORKER_READY_S) else ""
             if "ready" not in line:
                 err.seek(0)
                 tail = err.read().decode(errors="replace")[-1500:]
@@ -334,7 +336,7 @@ def _worker_process(backend: str, threads: int) -> Iterator[tuple[str, str]]:
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.wait()
-            proc.stdout.close()
+            stdout.close()
 
 
 def _free_port() -> int:

@@ -198,6 +198,11 @@ def _best(rows: list[dict[str, Any]], key: str, keep: Callable[[dict[str, Any]],
     return max(rows, key=lambda r: r[key]) if rows else None
 
 
+def _physics_at(n: int, grad: bool) -> Callable[[dict[str, Any]], bool]:
+    """Keeps the physics rows of ``n`` agents, with gradients or without."""
+    return lambda r: r.get("agents") == n and bool(r.get("grad")) == grad
+
+
 def compute_ratios(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Ours/peer for physics (sim-seconds/s at 100 drones) and 64x64 depth (our fastest backend)."""
     sections = result["sections"]
@@ -214,10 +219,10 @@ def compute_ratios(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
     for i, p in enumerate(peer_rows):
         n = p["drones"]
         for grad in (False, True) if i == 0 else (False,):
-            ours = _best(phys_rows, "sim_seconds_per_s", lambda r, n=n, grad=grad: r.get("agents") == n and bool(r.get("grad")) == grad)
+            ours = _best(phys_rows, "sim_seconds_per_s", _physics_at(n, grad))
             label = f"physics sim-s/s, {n:,} drones" + (", ours with grad" if grad else "")
             note = (f"ours: {ours.get('mode')}" if ours else f"no physics row at {n} agents") + "; peer: pybullet 240 Hz"
-            out[label] = _ratio(ours and ours["sim_seconds_per_s"], p["sim_seconds_per_s"],
+            out[label] = _ratio(ours["sim_seconds_per_s"] if ours else None, p["sim_seconds_per_s"],
                                 GOALS["physics"] if i == 0 and not grad else None, note)
 
     peer_depth = next((d for d in peer.get("depth", []) if d.get("res") == 64), None)
@@ -225,7 +230,8 @@ def compute_ratios(result: dict[str, Any]) -> dict[str, dict[str, Any]]:
     ours = _best(render_rows, "frames_per_s", lambda r: r.get("kind") == "depth" and r.get("res") == 64)
     note = (f"64x64 depth; ours: {ours.get('backend')} ({ours.get('where', '')}); peer: TinyRenderer"
             if ours else "needs the render section at 64x64 depth and the peer")
-    out["depth 64x64 frames/s"] = _ratio(ours and ours["frames_per_s"], peer_depth and peer_depth["frames_per_s"],
+    out["depth 64x64 frames/s"] = _ratio(ours["frames_per_s"] if ours else None,
+                                         peer_depth["frames_per_s"] if peer_depth else None,
                                          GOALS["depth"], note)
     return out
 

@@ -229,7 +229,7 @@ class TrainConfig:
                 )
         if not isinstance(self.seed, int) or self.seed < 0:
             out.append(f"seed={self.seed!r} must be an int >= 0")
-        if not 0 < float(self.lr) < 1:
+        if self.lr is None or not 0 < float(self.lr) < 1:  # None before resolved()
             out.append(f"lr={self.lr!r} must be in (0, 1)")
         for name in ("gamma", "gae_lambda"):
             if not 0 < float(getattr(self, name)) <= 1:

@@ -164,6 +164,7 @@ class _NativePhaseMax(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:
         lib, _ = load_kernels()
+        assert lib is not None, "forward ran the native kernel"
         (index,) = ctx.saved_tensors
         grad = grad.contiguous().to(torch.float32)
         grad_in = torch.empty((*index.shape, 4), dtype=torch.float32)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
 from visfly_dist.training.config import ALGOS, BACKBONES, TrainConfig, parse_override
 
@@ -28,6 +29,8 @@ def with_zenoh_config(overrides: dict, zenoh_config: str | None) -> dict:
     if zenoh_config is None:
         return overrides
     path = resolve_config_file(zenoh_config)
+    if path is None:  # an empty --zenoh-config and no $ZENOH_CONFIG
+        raise ConfigError(f"--zenoh-config {zenoh_config!r} names no file")
     load_config_file(path)
     pool = overrides.get("pool")
     pool = dict(pool) if isinstance(pool, dict) else {}
