@@ -1,6 +1,8 @@
 """Reset steps merge images into reused buffers: never one a caller still holds, and the held
 observation and terminal observation stay as they were handed out."""
 
+import gc
+
 import numpy as np
 import pytest
 import torch
@@ -31,7 +33,7 @@ def reset_step(env, agent):
 
 
 def pooled(env, image: torch.Tensor) -> bool:
-    return any(np.shares_memory(image.numpy(), a) for a in env._image_buffers._arrays)
+    return any(np.shares_memory(image.numpy(), b.memory) for b in env._image_buffers._buffers)
 
 
 def test_held_observations_stay_intact_across_later_reset_steps(env):
@@ -93,4 +95,33 @@ def test_pool_reuses_only_free_buffers_and_stays_bounded():
     assert pool.take((3, 4), torch.float32).data_ptr() == ptr
     assert pool.take((3, 4), torch.int32).dtype == torch.int32  # another dtype: another buffer
     held = [pool.take((3, 4), torch.float32) for _ in range(5)]
-    assert len(pool._arrays) == 2 and len({t.data_ptr() for t in held}) == 5
+    assert len(pool._buffers) == 2 and len({t.data_ptr() for t in held}) == 5
+
+
+@pytest.mark.parametrize("keep", [
+    lambda t: t,                              # the tensor itself
+    lambda t: t[1:],                          # a torch view
+    lambda t: t.numpy(),                      # a numpy array over it
+    lambda t: t.numpy()[2:, 1],               # a slice of that
+    lambda t: torch.from_numpy(t.numpy()[1:]),  # a tensor made again with torch.from_numpy
+    lambda t: [{"obs": t.view(-1)}],          # deep inside a container
+    lambda t: (lambda: t),                    # in a closure
+])
+def test_a_held_buffer_is_never_handed_out_again_and_a_released_one_is_reused(keep):
+    pool = BufferPool(size=1)
+    first = pool.take((3, 4), torch.float32)
+    first.fill_(7.0)
+    memory = pool._buffers[0].memory
+    kept = keep(first)
+    extra = [kept, kept]  # more references change nothing: ownership is the lease, not a count
+    del first
+    second = pool.take((3, 4), torch.float32)
+    assert not np.shares_memory(second.numpy(), memory)
+    second.fill_(-1.0)
+    assert (memory == 7.0).all()  # the held one is as it was handed out
+    del kept, extra, second
+    gc.collect()
+    assert pool._buffers[0].memory is not memory  # the pool kept the newest buffer (size 1)
+    reused = pool._buffers[0].memory
+    third = pool.take((3, 4), torch.float32)
+    assert np.shares_memory(third.numpy(), reused) and len(pool._buffers) == 1  # no new allocation
