@@ -1,19 +1,23 @@
-"""Images through a /dev/shm segment: equal to the inline path bit for bit, proven local by a nonce,
-refused with typed errors when malformed, never read when they are another request's, and no file
-left behind (real worker processes, real Zenoh)."""
+"""Images through a sealed memfd segment: equal to the inline path bit for bit, proven local by a
+nonce, refused with typed errors when malformed, never read when they are another request's, never
+written over while held, and no file in /dev/shm (real worker processes, real Zenoh)."""
 
 from __future__ import annotations
 
 import dataclasses
+import gc
 import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from tests.aggregator.conftest import make_aggregator, reference, spawn_poses
-from tests.helpers import call, client_session, wait_for
+from tests.helpers import REPO, call, client_session, wait_for
 from visfly_dist.aggregator import image_shm
 from visfly_dist.aggregator.image_shm import ImageSegments
 from visfly_dist.protocol.cameras import CameraSpec
@@ -38,6 +42,7 @@ def _poses(n: int, seed: int = 0) -> np.ndarray:
 
 
 def _shm_files(run: str) -> list[str]:
+    """Files of the run in /dev/shm: a segment is never one."""
     return [p for p in os.listdir("/dev/shm") if p.startswith(f"visfly-img-{run}-")]
 
 
@@ -73,9 +78,8 @@ def test_segment_images_equal_inline_images_bit_for_bit(served):
     poses = _poses(7)
     ok, inline = call(session, proc.rpc_key, _step(poses))
     assert ok and "images_in_segment" not in inline and "segment_refused" not in inline
-    for n in range(2):  # the second step finds the file gone and uses the worker's mapping
+    for _ in range(2):  # the second step uses the descriptor the worker opened for the first
         step, target = _offer(segments, proc.worker_id, len(poses))
-        assert (target.name in os.listdir("/dev/shm")) == (n == 0)
         ok, reply = call(session, proc.rpc_key, _step(poses, target))
         assert ok and reply["images_in_segment"] is True and reply["images"] == {}
         assert segments.check(step, proc.worker_id, reply) == (True, "")
@@ -84,7 +88,7 @@ def test_segment_images_equal_inline_images_bit_for_bit(served):
             np.testing.assert_array_equal(step.obs[cam.name], inline["images"][cam.name])
         for key in ("collision", "inside", "nearest", "distance"):
             np.testing.assert_array_equal(reply[key], inline[key])
-        assert segments.release(step) == [] and target.name not in os.listdir("/dev/shm")
+        assert segments.release(step) == [] and _shm_files(RUN) == []
         del step  # nothing holds its images any more: the next step may use the segment again
     ok, health = call(session, proc.rpc_key, Health().to_message())
     assert health["image_segments"] == {target.name: target.size}
@@ -103,8 +107,12 @@ def test_a_segment_is_not_offered_while_its_images_are_held_and_entries_land_at_
     np.testing.assert_array_equal(depth[0:4], inline["images"]["depth"][3:])
     assert segments.release(step) == []
     held = depth[0]  # a caller keeps one image: the segment stays theirs
-    other, _ = _offer(segments, proc.worker_id, 7)
+    kept = held.copy()
+    other, other_target = _offer(segments, proc.worker_id, 7)
     assert other.segment is not step.segment
+    ok, reply = call(session, proc.rpc_key, _step(_poses(7, seed=6), other_target))
+    assert ok and segments.check(other, proc.worker_id, reply) == (True, "")
+    np.testing.assert_array_equal(held, kept)
     segments.release(other, failed=True)
     del held, depth, step
     again, _ = _offer(segments, proc.worker_id, 7)
@@ -118,9 +126,11 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
     poses = _poses(7, seed=1)
     ok, inline = call(session, proc.rpc_key, _step(poses))
     other = ImageSegments(RUN, CAMS)
-    lease, lease_target = _offer(other, "other", len(poses))  # a real file, another nonce sent
-    for target, why in ((dataclasses.replace(lease_target, nonce=b"x" * 16), "another nonce"),
-                        (dataclasses.replace(lease_target, name=lease_target.name + "-gone"), "cannot open")):
+    lease, lease_target = _offer(other, "other", len(poses))  # a real segment, another nonce sent
+    for target, why in ((dataclasses.replace(lease_target, nonce=b"x" * 16), "is not image segment"),
+                        (dataclasses.replace(lease_target, fd=lease_target.fd + 1000), "cannot open"),
+                        # another process's descriptor: what a worker in another pid namespace finds
+                        (dataclasses.replace(lease_target, pid=proc.pid, fd=0), "is not image segment")):
         ok, reply = call(session, proc.rpc_key, _step(poses, target))
         assert ok and why in reply["segment_refused"] and "images_in_segment" not in reply
         for cam in CAMS:
@@ -128,41 +138,65 @@ def test_a_segment_the_worker_cannot_see_gets_the_images_inline(served):
     other.close()
     learner = ImageSegments(RUN, CAMS)  # the learner stops offering a segment to that worker
     refused, refused_target = _offer(learner, "w", len(poses))
-    refused.segment.mm[:16] = b"y" * 16  # as if another host's /dev/shm held this name
+    refused.segment.mm[:16] = b"y" * 16  # as if another host's process held this descriptor
     ok, reply = call(session, proc.rpc_key, _step(poses, refused_target))
     assert learner.check(refused, "w", reply) == (False, "") and learner.release(refused) == []
-    assert learner.offer([("w", 1)], len(poses), 0) is None and learner.files() == []
+    assert learner.offer([("w", 1)], len(poses), 0) is None and learner.live() == []
     assert learner.offer([("w", 2)], len(poses), 0) is not None  # a restarted worker is asked again
     learner.close()
 
 
-def test_a_segment_truncated_under_a_live_worker_costs_one_inline_reply_not_the_worker(served):
-    """Another process of the user truncates the file the worker writes into (a worker that wrote
-    through a mapping died of SIGBUS): the worker replies inline saying why, and keeps serving."""
+# Another process of the user, with the worker's access to the learner's descriptors.
+RESIZER = r"""
+import fcntl, os, sys
+path = sys.argv[1]
+attempts = {
+    "truncate": lambda: os.truncate(path, 64),
+    "open with O_TRUNC": lambda: os.close(os.open(path, os.O_RDWR | os.O_TRUNC)),
+    "grow": lambda: os.truncate(path, 1 << 30),
+    "fallocate past the end": lambda: os.posix_fallocate(os.open(path, os.O_RDWR), 0, 1 << 30),
+    "add a write seal": lambda: fcntl.fcntl(os.open(path, os.O_RDWR), fcntl.F_ADD_SEALS, fcntl.F_SEAL_WRITE),
+    "add a future-write seal": lambda: fcntl.fcntl(os.open(path, os.O_RDWR), fcntl.F_ADD_SEALS, 0x10),
+}
+for what, attempt in attempts.items():
+    try:
+        attempt()
+        print(what, "succeeded")
+    except PermissionError:
+        pass
+print(os.stat(path).st_size)
+"""
+
+
+def test_another_process_cannot_resize_a_segment_and_the_worker_keeps_writing_in_place(served):
+    """A process of the user that opens the learner's segment (as a worker does) cannot truncate,
+    grow or write-seal it (with a /dev/shm file, a truncate killed the reader with SIGBUS): the
+    learner reads every byte, and the worker keeps writing in place."""
     proc, session, _ = served
     poses = _poses(7, seed=9)
     ok, inline = call(session, proc.rpc_key, _step(poses))
     learner = ImageSegments(RUN, CAMS)
     step, target = _offer(learner, proc.worker_id, len(poses))
     ok, reply = call(session, proc.rpc_key, _step(poses, target))
-    assert ok and reply["images_in_segment"] is True  # the worker holds the file open now
-    os.truncate(os.path.join("/dev/shm", target.name), HEADER_BYTES)  # the blocks are gone
-    ok, reply = call(session, proc.rpc_key, _step(poses, target))
-    assert ok, reply
-    assert "truncated or grew it" in reply["segment_refused"] and "images_in_segment" not in reply
+    assert ok and reply["images_in_segment"] is True  # the worker holds the segment open now
+    assert learner.check(step, proc.worker_id, reply) == (True, "") and learner.release(step) == []
+    resizer = subprocess.run([sys.executable, "-c", RESIZER, target.path()], capture_output=True, text=True,
+                             timeout=60, cwd=REPO)
+    assert resizer.returncode == 0 and resizer.stdout.split() == [str(target.size)], resizer.stdout + resizer.stderr
+    assert len(step.segment.mm[:]) == target.size  # every page reads (a truncated file raised SIGBUS here)
     for cam in CAMS:
-        np.testing.assert_array_equal(reply["images"][cam.name], inline["images"][cam.name])
-    # The worker let the file go: named again, it is a file of the wrong size (a typed refusal).
-    ok, err = call(session, proc.rpc_key, _step(poses, target))
-    assert not ok and err["code"] == "bad_request" and f"has {HEADER_BYTES} bytes; the request says" in err["message"]
-    assert proc.poll() is None, proc.stderr_text()[-2000:]
-    ok, health = call(session, proc.rpc_key, Health().to_message())
-    assert ok and target.name not in health["image_segments"]
-    assert learner.release(step, failed=True) == []  # reads the header only: the first page is still there
+        np.testing.assert_array_equal(step.obs[cam.name], inline["images"][cam.name])
     del step
+    again, again_target = _offer(learner, proc.worker_id, len(poses))
+    assert again_target.name == target.name
+    ok, reply = call(session, proc.rpc_key, _step(poses, again_target))
+    assert ok and reply["images_in_segment"] is True and "segment_refused" not in reply
+    assert learner.check(again, proc.worker_id, reply) == (True, "")
+    for cam in CAMS:
+        np.testing.assert_array_equal(again.obs[cam.name], inline["images"][cam.name])
+    assert learner.release(again) == [] and proc.poll() is None
+    del again
     learner.close()
-    ok, again = call(session, proc.rpc_key, _step(poses))
-    assert ok and all(np.array_equal(again["images"][c.name], inline["images"][c.name]) for c in CAMS)
 
 
 @pytest.mark.parametrize("change, match", [
@@ -175,6 +209,10 @@ def test_a_segment_truncated_under_a_live_worker_costs_one_inline_reply_not_the_
     (dict(seq=0), "seq=0"),
     (dict(size=10), "size=10"),
     ("size+64", "request says"),
+    (dict(pid=0), "pid=0"),
+    (dict(pid=-5), "pid=-5"),
+    (dict(fd=-1), "fd=-1"),
+    (dict(fd="3"), "fd='3'"),
     (dict(blocks={"depth": HEADER_BYTES}), "this scene's cameras"),
     (dict(seq_offset=20), "seq_offset=20"),
     (dict(seq_offset=8), "seq_offset=8"),
@@ -190,8 +228,7 @@ def test_malformed_segment_requests_are_refused_and_the_worker_keeps_serving(ser
     poses = _poses(7, seed=2)
     lease, target = _offer(segments, proc.worker_id, len(poses))
     if change == "size+64":
-        target = dataclasses.replace(target, size=target.size + 64, name=target.name + "-big")
-        Path("/dev/shm", target.name).write_bytes(bytes(target.size - 64))
+        target = dataclasses.replace(target, size=target.size + 64)
     elif change == "overlap":
         target = dataclasses.replace(target, blocks={**target.blocks, "seg": target.blocks["depth"] + 64})
     elif change == "past the end":
@@ -199,11 +236,7 @@ def test_malformed_segment_requests_are_refused_and_the_worker_keeps_serving(ser
     else:
         message = _step(poses, target)
         message["image_segment"].update(change)
-    try:
-        ok, err = call(session, proc.rpc_key, message if isinstance(change, dict) else _step(poses, target))
-    finally:
-        if change == "size+64":
-            os.unlink(f"/dev/shm/{target.name}")
+    ok, err = call(session, proc.rpc_key, message if isinstance(change, dict) else _step(poses, target))
     assert not ok and err["code"] == "bad_request" and match in err["message"], err
     segments.release(lease, failed=True)
     ok, health = call(session, proc.rpc_key, Health().to_message())
@@ -255,31 +288,99 @@ def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_clo
         np.testing.assert_array_equal(again.images["depth"], obs.images["depth"])
         (newcomer,) = set(agg.workers) - set(mapped)
         (fresh,) = [set(h["image_segments"]) for h in agg.health() if h["worker_id"] == newcomer]
-        # the replacement got segments it could open (the first one was unlinked before it started)
-        assert fresh and not fresh & mapped[victim]
+        assert fresh  # the replacement writes in place too (it opens the learner's descriptors)
         assert _shm_files(run) == []
     finally:
         agg.close()
     assert _shm_files(run) == []
 
 
-def test_workers_that_see_another_dev_shm_step_inline(tmp_path, monkeypatch):
-    monkeypatch.setattr(image_shm, "SHM_DIR", str(tmp_path))  # the learner's "/dev/shm" is not the workers'
-    with make_aggregator(pool={"num_local_workers": 1}, scenes={"num_scenes": 2}) as agg:
-        poses = spawn_poses(agg)
-        for _ in range(2):
-            obs = agg.observe(poses)
-            np.testing.assert_allclose(obs.images["depth"], reference(agg, poses)["depth"], atol=1e-4)
-            assert not obs.lost.any() and list(tmp_path.iterdir()) == []
-        (health,) = agg.health()
-        assert health["image_segments"] == {}
+class _SeenFromAnotherPidNamespace:
+    """``os`` for :mod:`image_shm`, whose ``getpid`` is another process's: what a worker in another pid
+    namespace (a container) finds at ``/proc/<pid>/fd/<fd>``."""
+
+    def __init__(self, pid: int) -> None:
+        self._pid = pid
+
+    def getpid(self) -> int:
+        return self._pid
+
+    def __getattr__(self, name: str):
+        return getattr(os, name)
 
 
-def test_no_room_for_a_segment_means_inline_images(monkeypatch, tmp_path):
-    monkeypatch.setattr(image_shm, "SHM_DIR", str(tmp_path / "missing"))
+def test_workers_that_cannot_reach_the_learners_descriptors_step_inline(monkeypatch):
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    try:
+        monkeypatch.setattr(image_shm, "os", _SeenFromAnotherPidNamespace(sleeper.pid))
+        with make_aggregator(pool={"num_local_workers": 1}, scenes={"num_scenes": 2}) as agg:
+            monkeypatch.undo()
+            poses = spawn_poses(agg)
+            for _ in range(2):
+                obs = agg.observe(poses)
+                np.testing.assert_allclose(obs.images["depth"], reference(agg, poses)["depth"], atol=1e-4)
+                assert not obs.lost.any()
+            (health,) = agg.health()
+            assert health["image_segments"] == {}
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+# A learner that cannot open one more descriptor (RLIMIT_NOFILE of 0 once everything is imported).
+NO_DESCRIPTORS = r"""
+import resource
+from visfly_dist.aggregator.image_shm import ImageSegments
+from visfly_dist.protocol.cameras import CameraSpec
+
+segments = ImageSegments("nofd", (CameraSpec(name="depth", kind="depth", width=32, height=24),))
+resource.setrlimit(resource.RLIMIT_NOFILE, (0, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+print(segments.offer([("w", 1)], 4, 0), segments.offer([("w", 1)], 4, 0), segments.live())
+"""
+
+
+def test_no_room_for_a_segment_means_inline_images():
+    out = subprocess.run([sys.executable, "-c", NO_DESCRIPTORS], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert out.returncode == 0 and out.stdout.split() == ["None", "None", "[]"], out.stdout + out.stderr
+    assert "cannot create an image segment" in out.stderr
+
+
+@pytest.mark.parametrize("keep", [
+    lambda a: a,                                  # the observation's array itself
+    lambda a: a[1:, 0],                           # a slice of it
+    lambda a: torch.from_numpy(a),                # a torch tensor over it
+    lambda a: torch.from_numpy(a)[2:].view(-1),   # a view of that tensor
+    lambda a: torch.from_numpy(a).numpy()[3],     # numpy over the tensor
+    lambda a: {"obs": [a.reshape(-1)]},           # deep in a container
+])
+def test_a_held_observation_is_never_written_over_and_a_released_segment_is_reused(keep):
     segments = ImageSegments(RUN, CAMS)
-    assert segments.offer([("w", 1)], 4, 0) is None and segments.offer([("w", 1)], 4, 0) is None
-    assert segments.files() == []
+    step = segments.offer([("w", 1)], 4, 0)
+    first = step.segment
+    step.obs["depth"][:] = 1.0  # what the worker writes
+    kept = keep(step.obs["depth"])
+    extra = [kept, kept]  # more references change nothing: ownership is the lease, not a count
+    assert segments.release(step) == []
+    del step
+    later = []
+    for value in range(2, 2 + image_shm.MAX_SEGMENTS + 2):  # more steps than segments, every one held
+        other = segments.offer([("w", 1)], 4, 0)
+        assert other.segment is not first
+        other.obs["depth"][:] = value
+        segments.release(other)
+        later.append((value, other.obs["depth"]))
+        del other
+    assert (np.frombuffer(first.mm, np.float32, 4 * 24 * 32, first.blocks["depth"]) == 1.0).all()
+    assert all((depth == value).all() for value, depth in later)
+    del later
+    gc.collect()
+    live = segments.live()
+    free = segments.offer([("w", 1)], 4, 0)  # the later ones are free again: one is reused, none made
+    assert free.segment.name in live and segments.live() == live
+    segments.release(free)
+    del free, kept, extra
+    segments.close()
+    assert _shm_files(RUN) == []
 
 
 def test_only_images_taken_in_place_count_as_written_over():
@@ -317,17 +418,16 @@ def test_a_segment_grows_by_a_new_file_and_keeps_room_for_varying_rows():
     first = segments.offer([("w", 1)], 9, 3)
     first_segment = first.segment
     assert (first_segment.obs_rows, first_segment.spawn_rows) == (16, 4)
-    first_segment.users.add(("w", 1))  # as if "w" had written there
-    assert segments.release(first) == [] and segments.files() == []
+    assert segments.release(first) == []
     del first
     again = segments.offer([("w", 1)], 16, 4)  # room for 16 rows was made for 9
-    newcomer = segments.offer([("v", 1)], 1, 0)  # "v" never mapped the unlinked file: a new one
+    newcomer = segments.offer([("v", 1)], 1, 0)  # the first one is busy: a new one
     assert again.segment is first_segment and newcomer.segment is not first_segment
     segments.release(again), segments.release(newcomer)
     del again, newcomer
     bigger = segments.offer([("w", 1)], 17, 0)
     assert bigger.segment is not first_segment and bigger.segment.name != first_segment.name
-    assert segments.files() == [bigger.segment.path]  # the small one was unlinked
+    assert segments.live() == [bigger.segment.name] and first_segment.fd == -1  # the small ones were closed
     segments.close()
     assert _shm_files(RUN) == []
 

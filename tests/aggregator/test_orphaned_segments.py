@@ -1,5 +1,7 @@
-"""Image segment files left in /dev/shm by a learner killed with a request in flight are removed by
-the next learner on the host; files another live process holds open or maps are kept."""
+"""A learner killed with a request in flight leaves nothing behind: its segments are memfds, never
+files in /dev/shm, and go with the last process that holds one. A worker that still holds the
+killed learner's segment keeps writing (no SIGBUS), and a worker asked for it afterwards gets no
+segment (the images go inline)."""
 
 from __future__ import annotations
 
@@ -8,64 +10,64 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from tests.aggregator.conftest import make_aggregator
 from tests.helpers import REPO
-from visfly_dist.protocol.image_segment import NAME_PREFIX, SHM_DIR
+from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.codec import decode, encode
+from visfly_dist.protocol.image_segment import NAME_PREFIX, SegmentTarget
+from visfly_dist.scene_worker.image_segments import SegmentMappings
+
+CAMS = (CameraSpec(name="depth", kind="depth", width=32, height=24),)
 
 # A learner that takes a segment for a request to a worker (as Aggregator.submit does), prints the
-# file's path and waits for a worker answer that never comes.
+# request's target and waits for a worker answer that never comes.
 LEARNER = r"""
 import sys
 from visfly_dist.aggregator.image_shm import ImageSegments
 from visfly_dist.protocol.cameras import CameraSpec
+from visfly_dist.protocol.codec import encode
 
 segments = ImageSegments(sys.argv[1], (CameraSpec(name="depth", kind="depth", width=32, height=24),))
 step = segments.offer([("local-0", 1)], 12, 0)
-print(step.segment.path, flush=True)
+target = segments.target(step, ("local-0", 1), [0], [])
+sys.stdout.buffer.write(encode({"type": "target", "target": target.to_message()}).hex().encode() + b"\n")
+sys.stdout.flush()
 sys.stdin.read()
 """
 
 
-def _learner(run: str) -> tuple[subprocess.Popen, str]:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
-    proc = subprocess.Popen([sys.executable, "-c", LEARNER, run], cwd=REPO, env=env, stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, text=True)
-    path = proc.stdout.readline().strip()
-    assert path.startswith(f"{SHM_DIR}/{NAME_PREFIX}{run}-") and os.path.exists(path), (path, proc.poll())
-    return proc, path
-
-
 @pytest.fixture
-def learners():
-    procs: list[subprocess.Popen] = []
-    yield procs
-    for proc in procs:
-        proc.kill()
-        proc.wait(timeout=10)
+def learner():
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    proc = subprocess.Popen([sys.executable, "-c", LEARNER, "orphan"], cwd=REPO, env=env, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE)
+    line = proc.stdout.readline()
+    assert line, proc.poll()
+    yield proc, SegmentTarget.parse(decode(bytes.fromhex(line.decode()))["target"])
+    proc.kill()
+    proc.wait(timeout=10)
 
 
-def test_a_new_learner_removes_orphaned_segments_and_keeps_those_in_use(learners):
-    killed, orphan = _learner("orphan-killed")
-    alive, in_use = _learner("orphan-alive")
-    learners += [killed, alive]
-    killed.send_signal(signal.SIGKILL)  # with its request unanswered: the file stays behind
-    killed.wait(timeout=10)
-    assert os.path.exists(orphan)
-    held_open = os.path.join(SHM_DIR, f"{NAME_PREFIX}orphan-held-0000")  # open here, not mapped
-    with open(held_open, "wb") as held:
-        held.write(b"\0" * 64)
-        held.flush()
-        try:
-            agg = make_aggregator(pool={"shared_memory": True})  # builds its image segments: no worker yet
-            agg.close()
-            assert not os.path.exists(orphan)
-            assert os.path.exists(in_use), "a live learner's segment was removed"
-            assert os.path.exists(held_open), "a segment file held open by a live process was removed"
-        finally:
-            os.unlink(held_open)
-    alive.send_signal(signal.SIGTERM)
-    alive.wait(timeout=10)
-    make_aggregator(pool={"shared_memory": True}).close()  # a learner that ended by a signal, too
-    assert not os.path.exists(in_use)
+def test_a_killed_learner_leaves_no_file_and_its_workers_survive(learner):
+    proc, target = learner
+    assert target.pid == proc.pid and not [n for n in os.listdir("/dev/shm") if n.startswith(NAME_PREFIX)]
+    assert os.readlink(target.path()) == f"/memfd:{target.name} (deleted)"
+    images = {"depth": np.full((12, *CAMS[0].shape), 3.0, np.float32)}
+    starts, counts = np.array([0]), np.array([12])
+    worker = SegmentMappings()
+    views, why = worker.views(target, CAMS, 12)
+    assert why == "" and views is not None
+    assert worker.publish(target, images, starts, counts) == ""
+    proc.send_signal(signal.SIGKILL)  # with its request unanswered
+    proc.wait(timeout=10)
+    assert not [n for n in os.listdir("/dev/shm") if n.startswith(NAME_PREFIX)]
+    # The worker that holds the segment writes on (into memory that goes with its descriptor) ...
+    assert worker.views(target, CAMS, 12)[1] == "" and worker.publish(target, images, starts, counts) == ""
+    worker.close()
+    # ... and one asked for it now finds nothing to open: it replies inline.
+    late = SegmentMappings()
+    views, why = late.views(target, CAMS, 12)
+    assert views is None and "cannot open image segment" in why
+    late.close()

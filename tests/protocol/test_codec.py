@@ -82,8 +82,8 @@ def test_error_message_carries_type_code_and_message():
         error_message("SceneError", "not_a_code", "x")
 
 
-@pytest.mark.parametrize("version", [True, 2.0, "2", None, 1, 3])
-def test_only_the_exact_int_version_is_accepted(version):  # 1: a worker from before image segments
+@pytest.mark.parametrize("version", [True, 3.0, "3", None, 1, 2, 4])
+def test_only_the_exact_int_version_is_accepted(version):  # 1, 2: workers from before image segments, memfd segments
     with pytest.raises(ProtocolError, match="protocol version"):
         decode(_raw({"version": version, "type": "health"}, tail=b""))
 

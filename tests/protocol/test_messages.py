@@ -185,13 +185,14 @@ def test_valid_requests_parse_to_float64_poses_and_normalised_cameras():
 def test_an_image_segment_target_survives_the_codec_and_bad_ones_are_refused():
     from visfly_dist.protocol.image_segment import SegmentTarget
 
-    target = SegmentTarget("visfly-img-run-w0-00ff", b"n" * 16, 4096, 7, {"depth": 64})
+    target = SegmentTarget("visfly-img-run-w0-00ff", b"n" * 16, 4096, 7, {"depth": 64}, pid=1234, fd=17)
     step = StepRequest((ScenePoses("a", np.array([[0, 0, 1, 1, 0, 0, 0]], np.float32)),), image_segment=target)
     assert parse_request(decode(encode(step.to_message()))).image_segment == target
     assert parse_request(decode(encode(StepRequest(step.scenes).to_message()))).image_segment is None
     for bad, match in ((dict(extra=1), "must be a map of name, nonce, size, seq, blocks"),
                        (dict(blocks={"depth": 4096}), "offsets in"), (dict(size=True), "size=True"),
-                       (dict(name="visfly-img-a\x00b"), "no path separators")):
+                       (dict(name="visfly-img-a\x00b"), "no path separators"), (dict(pid=0), "pid=0"),
+                       (dict(fd=-1), "fd=-1"), (dict(fd="3"), "fd='3'"), (dict(pid=True), "pid=True")):
         message = step.to_message()
         message["image_segment"] = {**target.to_message(), **bad}
         with pytest.raises(ProtocolError, match=match):

@@ -22,7 +22,7 @@ import numpy as np
 
 from visfly_dist.errors import ErrorCode, ProtocolError
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 MAX_MESSAGE_BYTES = 512 * 1024 * 1024
 MAX_ARRAY_ELEMENTS = 256 * 1024 * 1024
 ALLOWED_DTYPES = frozenset(

@@ -1,12 +1,14 @@
-"""The image segment: a ``/dev/shm`` file through which a worker on the learner's host hands over images.
+"""The image segment: a sealed memfd through which a worker on the learner's host hands over images.
 
-The learner creates the file (mode 0600), writes a random nonce at its start, and names it in a
+The learner creates the segment (``memfd_create``, sealed against shrinking and growing, so no
+process can truncate it under a mapping), writes a random nonce at its start, and names it in a
 step request (:class:`SegmentTarget`, the request's ``image_segment`` field) together with where
-each camera's block of images lies. A worker that can open the file and reads the same nonce
-there is on the learner's host and sees the same ``/dev/shm``: it writes the images into the
-blocks, then the request's sequence number into the header, and replies with the query arrays
-only and ``images_in_segment: true``. Otherwise it replies inline as without a segment, with
-``segment_refused`` giving the reason. Both sides share this module; neither imports the other.
+each camera's block of images lies. The worker opens it through the learner's descriptor
+(``/proc/<pid>/fd/<fd>``): one that can, and reads the same nonce there, is on the learner's host
+in its pid namespace. It writes the images into the blocks, then the request's sequence number
+into the header, and replies with the query arrays only and ``images_in_segment: true``.
+Otherwise it replies inline as without a segment, with ``segment_refused`` giving the reason.
+Both sides share this module; neither imports the other.
 
 Layout (little-endian)::
 
@@ -17,6 +19,7 @@ Layout (little-endian)::
 
 from __future__ import annotations
 
+import fcntl
 import re
 import struct
 from dataclasses import dataclass
@@ -27,7 +30,6 @@ import numpy as np
 from visfly_dist.errors import ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
 
-SHM_DIR = "/dev/shm"
 NAME_PREFIX = "visfly-img-"
 MAX_NAME_CHARS = 200
 NONCE_BYTES = 16
@@ -37,11 +39,17 @@ HEADER_BYTES = 64
 BLOCK_ALIGN = 64
 MAX_SEGMENT_BYTES = 1 << 36
 MAX_SEQ = 2**63 - 1
+MAX_PID = 2**22
+"""Linux's largest pid (``PID_MAX_LIMIT``)."""
+MAX_FD = 2**31 - 1
+SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
+"""The seals of every segment: its size is fixed, and nobody can add a seal (a write seal would
+make the workers' writes fail)."""
 _NAME = re.compile(r"[A-Za-z0-9_-]+")
 
 
 def check_name(name: Any) -> str:
-    """``name`` if it is a safe segment file name (no path, no dots), else ProtocolError."""
+    """``name`` if it is a safe segment name (no path, no dots), else ProtocolError."""
     if not isinstance(name, str) or len(name) > MAX_NAME_CHARS or not name.startswith(NAME_PREFIX) \
             or not _NAME.fullmatch(name):
         shown = name if not isinstance(name, str) or len(name) <= 80 else name[:80] + "..."
@@ -77,18 +85,21 @@ def block_view(buffer: Any, offset: int, camera: CameraSpec, rows: int) -> np.nd
 
 @dataclass(frozen=True)
 class SegmentTarget:
-    """Where a step request wants its images: segment file, nonce, size, sequence number, blocks.
+    """Where a step request wants its images: segment, nonce, size, sequence number, blocks.
 
     Attributes:
-        name: the file's name in ``/dev/shm`` (:func:`check_name`).
-        nonce: the :data:`NONCE_BYTES` bytes the learner wrote at the file's start.
-        size: the file's size in bytes.
+        name: the segment's name (:func:`check_name`): what the worker caches it by, and the memfd's
+            name (``/memfd:<name>`` in ``/proc``).
+        nonce: the :data:`NONCE_BYTES` bytes the learner wrote at the segment's start.
+        size: the segment's size in bytes.
         seq: this request's sequence number (>= 1), written by the worker once the images are in.
         blocks: camera name -> byte offset of its ``(rows, C, H, W)`` block.
         seq_offset: where the worker writes ``seq`` (8 bytes, before every block): several workers
             can write one segment, each its own number (default :data:`SEQ_OFFSET`).
         entry_rows: the block row of each request entry's first image (default: the entries one
             after another from row 0); lets the learner lay a step's images out in observation order.
+        pid: the learner's process id, and
+        fd: its descriptor of the segment: a worker opens ``/proc/<pid>/fd/<fd>`` (:meth:`path`).
     """
 
     name: str
@@ -96,12 +107,18 @@ class SegmentTarget:
     size: int
     seq: int
     blocks: dict[str, int]
+    pid: int
+    fd: int
     seq_offset: int = SEQ_OFFSET
     entry_rows: tuple[int, ...] | None = None
 
+    def path(self) -> str:
+        """Where a worker on the learner's host opens the segment (two ints: nothing else is reachable)."""
+        return f"/proc/{self.pid}/fd/{self.fd}"
+
     def to_message(self) -> dict[str, Any]:
         msg: dict[str, Any] = {"name": self.name, "nonce": self.nonce, "size": self.size, "seq": self.seq,
-                               "blocks": self.blocks}
+                               "blocks": self.blocks, "pid": self.pid, "fd": self.fd}
         if self.seq_offset != SEQ_OFFSET:
             msg["seq_offset"] = self.seq_offset
         if self.entry_rows is not None:
@@ -112,10 +129,10 @@ class SegmentTarget:
     def parse(cls, msg: Any) -> "SegmentTarget":
         """Validate the request's ``image_segment`` map; ProtocolError naming what is wrong."""
         what = "step.image_segment"
-        required, optional = {"name", "nonce", "size", "seq", "blocks"}, {"seq_offset", "entry_rows"}
+        required, optional = {"name", "nonce", "size", "seq", "blocks", "pid", "fd"}, {"seq_offset", "entry_rows"}
         if not isinstance(msg, Mapping) or not required <= set(msg) <= required | optional:
             got = sorted(map(str, msg)) if isinstance(msg, Mapping) else type(msg).__name__
-            raise ProtocolError(f"{what} must be a map of name, nonce, size, seq, blocks (and optionally "
+            raise ProtocolError(f"{what} must be a map of name, nonce, size, seq, blocks, pid, fd (and optionally "
                                 f"seq_offset, entry_rows); got {got}")
         name = check_name(msg["name"])
         nonce, size, seq, blocks = msg["nonce"], msg["size"], msg["seq"], msg["blocks"]
@@ -125,6 +142,11 @@ class SegmentTarget:
             raise ProtocolError(f"{what}.size={size!r} must be an int in [{HEADER_BYTES}, {MAX_SEGMENT_BYTES}]")
         if type(seq) is not int or not 1 <= seq <= MAX_SEQ:
             raise ProtocolError(f"{what}.seq={seq!r} must be an int in [1, 2**63 - 1]")
+        pid, fd = msg["pid"], msg["fd"]
+        if type(pid) is not int or not 1 <= pid <= MAX_PID:
+            raise ProtocolError(f"{what}.pid={pid!r} must be an int in [1, {MAX_PID}]")
+        if type(fd) is not int or not 0 <= fd <= MAX_FD:
+            raise ProtocolError(f"{what}.fd={fd!r} must be an int in [0, {MAX_FD}]")
         if not isinstance(blocks, Mapping) or not blocks or not all(
                 isinstance(k, str) and type(v) is int and HEADER_BYTES <= v < size for k, v in blocks.items()):
             raise ProtocolError(f"{what}.blocks must map camera names to int offsets in [{HEADER_BYTES}, {size})")
@@ -133,7 +155,7 @@ class SegmentTarget:
                 or seq_offset + SEQ.size > min(blocks.values()):
             raise ProtocolError(f"{what}.seq_offset={seq_offset!r} must be a multiple of {SEQ.size} in "
                                 f"[{SEQ_OFFSET}, first block - {SEQ.size}]")
-        return cls(name, nonce, size, seq, dict(blocks), seq_offset, _entry_rows(msg.get("entry_rows")))
+        return cls(name, nonce, size, seq, dict(blocks), pid, fd, seq_offset, _entry_rows(msg.get("entry_rows")))
 
     def starts(self, counts: np.ndarray) -> np.ndarray:
         """The block row of each entry's first image, checked against the entries' ``counts``."""

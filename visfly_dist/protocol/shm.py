@@ -13,10 +13,6 @@ it stops) unlinks this process's files once every tracked session is closed. Unl
 session of this process is still open would hide its pool from peers that have not mapped it yet,
 hence the tracking.
 
-:func:`files_in_use` is the same rule for other ``/dev/shm`` files: the learner's image segments
-(``visfly-img-*``) left by a learner that was killed with a request in flight are removed when the
-next learner on the host starts, unless a live process still holds or maps them.
-
 Never call it while the process may still open a session: Zenoh keeps the buffer-header and
 watchdog segments per process (global to it, not per session) and reuses them in every later
 session. Once unlinked, a peer that first maps them afterwards (the worker of the next env made in
@@ -32,7 +28,7 @@ import atexit
 import os
 import threading
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable
 
 SHM_DIR = Path("/dev/shm")
 
@@ -97,45 +93,12 @@ def _zenoh_files_open_in(fd_dir: Path) -> set[str]:
     return _open_files_in(fd_dir, _is_zenoh_file)
 
 
-def _mapped_files_in(maps: Path, wanted: Callable[[str], bool]) -> set[str]:
-    """Paths mapped by the process whose ``/proc/<pid>/maps`` is ``maps``, for which ``wanted`` holds."""
-    found = set()
-    try:
-        text = maps.read_text()
-    except OSError:  # gone, or another user's process (it cannot open our mode-0600 files either)
-        return found
-    for line in text.splitlines():
-        fields = line.split(maxsplit=5)
-        if len(fields) == 6 and wanted(fields[5]):
-            found.add(fields[5])
-    return found
-
-
 def _zenoh_files_open_elsewhere() -> set[str]:
     me = str(os.getpid())
     held: set[str] = set()
     for proc in Path("/proc").iterdir():
         if proc.name.isdigit() and proc.name != me:
             held |= _zenoh_files_open_in(proc / "fd")
-    return held
-
-
-def files_in_use(paths: Iterable[str]) -> set[str]:
-    """The ones of ``paths`` that a live process (this one included) holds open or maps.
-
-    Reads ``/proc/<pid>/fd`` and then ``/proc/<pid>/maps`` of every process, in that order: a file
-    that is opened, mapped, then closed (as the learner's image segments are) is seen in one or
-    the other whenever the scan reads that process. Processes this user cannot inspect are
-    skipped, which is safe for files of mode 0600: only their owner can open them.
-    """
-    wanted = set(paths)
-    if not wanted:
-        return set()
-    held: set[str] = set()
-    for proc in Path("/proc").iterdir():
-        if proc.name.isdigit():
-            held |= _open_files_in(proc / "fd", wanted.__contains__)
-            held |= _mapped_files_in(proc / "maps", wanted.__contains__)
     return held
 
 

@@ -1,26 +1,24 @@
-r"""The worker's side of image segments: open the learner's ``/dev/shm`` file, prove it is the learner's,
+r"""The worker's side of image segments: open the learner's sealed memfd, prove it is the learner's,
 and write a step's images into it (:mod:`visfly_dist.protocol.image_segment`).
 
-The worker never maps a segment: it renders into buffers of its own and ``pwrite``\ s each entry's
-rows into the file. Any process of the user may truncate a ``/dev/shm`` file, and a store into a
-mapping past the file's new end kills the writer with SIGBUS; ``pwrite`` past the end only extends
-the file again. A segment whose size is no longer the request's is refused (the images go inline,
-``segment_refused`` says why), so a truncated segment costs one inline reply, never the worker. The
-price: the renderer writes into a reused buffer, and ``pwrite`` copies it into the file's pages,
-which costs more than stores into a mapping (measured on a 2-core host: 4 MiB of depth images,
-2.7 ms against 0.3 ms). A ``visfly-dist bench step`` of 256 agents at 64x64 (one raycast worker)
-did not tell the two apart: a median of 956 against 957 env-steps/s over 5 interleaved runs each.
+The worker opens the segment through the learner's descriptor (``/proc/<pid>/fd/<fd>``, two ints
+from the request: nothing else is ever opened), and uses it only if it is a memfd sealed against
+shrinking and growing and holds the request's nonce. The worker never maps a segment: it renders
+into buffers of its own and ``pwrite``\ s each entry's rows into it (measured on a 2-core host: 4 MiB
+of depth images, 2.7 ms against 0.3 ms for stores into a mapping; a ``visfly-dist bench step`` of
+256 agents at 64x64, one raycast worker, did not tell the two apart: a median of 956 against 957
+env-steps/s over 5 interleaved runs each).
 
-Files are cached by name (an open descriptor each): the learner unlinks a file as soon as this worker
-has answered a request that used it, so later requests find the descriptor here, not the file. The
-cache keeps the few most recently used and closes older ones (a learner grows a segment by naming a
-new file).
+Segments are cached by name (an open descriptor each): the learner may close its descriptor once
+it retires a segment, and this worker keeps writing where its own descriptor points. The cache
+keeps the few most recently used and closes older ones (a learner grows a segment by making a new
+one).
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
-import stat
 from collections import OrderedDict
 from typing import Sequence
 
@@ -30,8 +28,8 @@ from visfly_dist.errors import ProtocolError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.image_segment import (
     NONCE_BYTES,
+    SEALS,
     SEQ,
-    SHM_DIR,
     SegmentTarget,
     block_bytes,
 )
@@ -40,7 +38,7 @@ MAX_MAPPINGS = 8
 
 
 class SegmentMappings:
-    """Segment files this worker has open, by name (most recently used last), and its image buffers."""
+    """Segments this worker has open, by name (most recently used last), and its image buffers."""
 
     def __init__(self, max_mappings: int = MAX_MAPPINGS) -> None:
         self._files: OrderedDict[str, tuple[int, int]] = OrderedDict()  # name -> (fd, size)
@@ -50,15 +48,15 @@ class SegmentMappings:
     def views(self, target: SegmentTarget, cameras: Sequence[CameraSpec],
               rows: int) -> tuple[dict[str, np.ndarray] | None, str]:
         """Writable ``(rows, C, H, W)`` buffers of each camera and ``""``; or ``None`` and why the
-        segment cannot be used (no such file here, another nonce in it: not the learner's host; or
-        a size that changed). Render into the buffers, then :meth:`publish` writes them.
+        segment cannot be used (nothing to open, not a sealed memfd, another nonce in it: not the
+        learner's host or pid namespace). Render into the buffers, then :meth:`publish` writes them.
 
         Marks the segment's images as being written (sequence number 0 at the target's
         ``seq_offset``) until :meth:`publish`.
 
         Raises:
-            ProtocolError: blocks that do not fit the cameras or the segment, or a file whose size
-                differs from the request's when it is first opened.
+            ProtocolError: blocks that do not fit the cameras or the segment, or a segment whose size
+                differs from the request's.
         """
         target.check_blocks({c.name: block_bytes(c, rows) for c in cameras})
         entry = self._files.get(target.name)
@@ -72,14 +70,10 @@ class SegmentMappings:
             entry = (fd, target.size)
         fd = entry[0]
         try:
-            size = os.fstat(fd).st_size
-            if size != target.size:
-                self._drop(target.name, entry)
-                return None, (f"image segment {target.name!r} has {size} bytes now, not {target.size}: "
-                              "another process truncated or grew it")
             if os.pread(fd, NONCE_BYTES, 0) != target.nonce:
                 self._drop(target.name, entry)
-                return None, f"image segment {target.name!r} holds another nonce (a different host or /dev/shm)"
+                return None, (f"image segment {target.name!r} holds another nonce (a different host or pid "
+                              "namespace)")
             self._files[target.name] = entry
             self._files.move_to_end(target.name)
             while len(self._files) > self._max:
@@ -96,10 +90,6 @@ class SegmentMappings:
         header; ``""``, or why the segment could not take them (the caller replies inline then)."""
         fd, size = self._files[target.name]
         try:
-            if os.fstat(fd).st_size != size:
-                self._drop(target.name, (fd, size))
-                return (f"image segment {target.name!r} was truncated or grown by another process while the "
-                        "images were rendered")
             for name, block in target.blocks.items():
                 image = images[name]
                 row_bytes = image[0].nbytes if len(image) else 0
@@ -127,17 +117,30 @@ class SegmentMappings:
 
     @staticmethod
     def _open(target: SegmentTarget) -> tuple[int | None, str]:
-        path = os.path.join(SHM_DIR, target.name)  # the name holds no separator and no dot (check_name)
+        """The segment's descriptor and ``""``, or None and why it cannot be used.
+
+        Opened without blocking and never as a controlling terminal, whatever the descriptor there
+        is; used only if it is a memfd with the segment's seals (nobody can resize it) and the
+        request's nonce (another host's or pid namespace's process has other descriptors there);
+        then its size must be the request's.
+        """
+        path = target.path()
         try:
-            fd = os.open(path, os.O_RDWR | os.O_NOFOLLOW | os.O_CLOEXEC)
+            fd = os.open(path, os.O_RDWR | os.O_CLOEXEC | os.O_NOCTTY | os.O_NONBLOCK)
         except OSError as exc:
-            return None, f"cannot open image segment {path}: {exc.strerror}"
+            return None, f"cannot open image segment {target.name!r} at {path}: {exc.strerror}"
         try:
-            st = os.fstat(fd)
-            if not stat.S_ISREG(st.st_mode):
-                raise ProtocolError(f"image segment {path} is not a regular file")
-            if st.st_size != target.size:
-                raise ProtocolError(f"image segment {path} has {st.st_size} bytes; the request says {target.size}")
+            try:
+                seals = fcntl.fcntl(fd, fcntl.F_GET_SEALS)
+            except OSError:
+                seals = 0
+            if seals & SEALS != SEALS or os.pread(fd, NONCE_BYTES, 0) != target.nonce:
+                os.close(fd)
+                return None, (f"{path} is not image segment {target.name!r} (another host, or another pid "
+                              "namespace)")
+            size = os.fstat(fd).st_size
+            if size != target.size:
+                raise ProtocolError(f"image segment {target.name!r} has {size} bytes; the request says {target.size}")
         except BaseException:
             os.close(fd)
             raise
