@@ -166,22 +166,22 @@ def test_a_repeated_step_sees_scenes_unloaded_reloaded_and_re_cameraed_in_betwee
 def test_loads_after_the_first_step_run_below_the_serving_thread(make_worker, monkeypatch):
     """Start-up loads keep the worker's priority; loads that arrive while steps are served (swaps,
     rebalancing) run niced, so generating a scene does not slow the steps' rendering."""
-    from visfly_dist.scene_worker import service
+    from visfly_dist.scene_worker import loads
 
     niceness = {}
-    prepare = service.prepare_scene
+    prepare = loads.prepare_scene
 
     def recording(request, *args):
         niceness[request.scene_key] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         return prepare(request, *args)
 
     own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    if own >= service.BACKGROUND_LOAD_NICE:
+    if own >= loads.BACKGROUND_LOAD_NICE:
         pytest.skip(f"the tests already run at niceness {own}")
-    monkeypatch.setattr(service, "prepare_scene", recording)
+    monkeypatch.setattr(loads, "prepare_scene", recording)
     worker = make_worker()
     assert _call(worker, _load("before"))[0]
     ok, reply = _call(worker, StepRequest((ScenePoses("before", np.array([[1, 0, 1, 1, 0, 0, 0]], np.float32)),)).to_message())
     assert ok, reply
     assert _call(worker, _load("after"))[0]
-    assert niceness == {"before": own, "after": service.BACKGROUND_LOAD_NICE}
+    assert niceness == {"before": own, "after": loads.BACKGROUND_LOAD_NICE}

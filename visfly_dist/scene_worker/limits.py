@@ -10,6 +10,9 @@ from visfly_dist.errors import ConfigError
 MIB = 1024 * 1024
 MEMORY_SHARE = 0.5
 """Share of the host's physical memory one worker may fill with scenes by default."""
+LOAD_RESERVE_BYTES = 128 * MIB
+"""Memory set aside per load running when a worker decides whether another load may start beside
+it: more than one maximum-density garage adds (about 89 MB; a default garage about 9 MB)."""
 
 
 def host_memory_bytes() -> int | None:
@@ -44,9 +47,10 @@ class WorkerLimits:
         max_key_chars: length of a scene key a load may create (``too_large`` beyond).
         max_pixels: agents x cameras x pixels one step may render (``too_large`` beyond).
         max_memory_bytes: resident memory of the worker process; a load is refused (``overloaded``)
-            when the worker is at it before the load, or past it once the scene is built (the
-            scene is dropped then). One maximum-density garage adds about 89 MB. Default: half
-            the host's physical memory.
+            when the worker is at it when the load is accepted or starts, or past it once the scene
+            is built (the scene is dropped then). A load starts beside others only while
+            :data:`LOAD_RESERVE_BYTES` per load running fit under it. One maximum-density garage
+            adds about 89 MB. Default: half the host's physical memory.
     """
 
     max_scenes: int = 1024

@@ -4,12 +4,14 @@ Threading. Zenoh calls the queryable's callback on its own thread; the callback 
 query. The *serving thread* (the one that called :meth:`SceneWorker.serve`) takes items off that
 inbox and does all the request work (decode, render, FCL, encode, reply) one at a time, so GL
 contexts stay on the thread that made them. The one exception is the CPU-heavy half of a
-``load_scene`` (mesh loading or generation, BVH builds): it runs on a single loader thread, so a
-load never blocks health checks or other scenes' steps. When it ends, the loader puts the result in
-the same inbox; the serving thread finishes the load (an EGL renderer is built there), installs the
-scene and replies. Until then a step on that key gets ``SceneError`` with code ``scene_loading``; a
-key being re-loaded keeps serving its old scene. A reply (or error) is sent exactly once per query,
-and the query is then dropped explicitly, which tells the querier that the answer is complete.
+``load_scene`` (mesh loading or generation, BVH builds): it runs on loader threads (and, in a
+start-up burst, generator processes), so a load never blocks health checks or other scenes' steps;
+how many run at once is :mod:`visfly_dist.scene_worker.loads`'s business. When one ends, the loader
+puts the job in the same inbox; the serving thread finishes the load (an EGL renderer is built
+there), installs the scene, replies and starts the loads that may start now. Until then a step on
+that key gets ``SceneError`` with code ``scene_loading``; a key being re-loaded keeps serving its
+old scene. A reply (or error) is sent exactly once per query, and the query is then dropped
+explicitly, which tells the querier that the answer is complete.
 
 Every failure of a request becomes an error reply (``codec.error_message``) with the exception's
 class name (``ProtocolError``, ``SceneError``) and its :class:`~visfly_dist.errors.ErrorCode`, or
@@ -24,10 +26,7 @@ import logging
 import os
 import queue
 import socket
-import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -50,18 +49,16 @@ from visfly_dist.protocol.messages import (
 )
 from visfly_dist.protocol.session import SessionConfig, client_of, open_session
 from visfly_dist.scene_worker.image_segments import SegmentMappings
-from visfly_dist.scene_worker.limits import MIB, WorkerLimits, resident_bytes
+from visfly_dist.scene_worker.limits import LOAD_RESERVE_BYTES, MIB, WorkerLimits, resident_bytes
+from visfly_dist.scene_worker.loads import LoadJob, Respond, SceneLoader, parallel_loads
 from visfly_dist.scene_worker.queries import query_scenes
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, gl_device_name, render_scenes_into
 from visfly_dist.scene_worker.render_raycast import default_tracer
-from visfly_dist.scene_worker.state import PreparedScene, SceneTable, assemble_scene, prepare_scene
+from visfly_dist.scene_worker.state import PreparedScene, SceneTable, assemble_scene
 from visfly_dist.scene_worker.timing import StageTimer
 from visfly_dist.scenes import sample_free_positions
 
 log = logging.getLogger(__name__)
-
-Respond = Callable[[bool, bytes], None]
-"""Sends one answer: ``(True, reply)`` or ``(False, error reply)``."""
 
 DUPLICATE_CHECK_S = 1.0
 """How long a liveliness get for this worker's own id may take at start."""
@@ -69,35 +66,10 @@ VISIBLE_CHECK_S = 5.0
 """How long a worker with a config file waits to see its own token through the router before it refuses to start."""
 
 
-BACKGROUND_LOAD_NICE = 10
-"""Niceness of the thread that loads scenes once steps are served. Generating a scene takes a few
-hundred ms of CPU (a garage: about 0.3 s); at the same priority, swaps during training doubled the
-render time of every step on a 2-core machine."""
-
-
-def _lower_priority() -> None:
-    """Run the calling thread at :data:`BACKGROUND_LOAD_NICE` or nicer (Linux threads have their own niceness)."""
-    try:
-        tid = threading.get_native_id()
-        os.setpriority(os.PRIO_PROCESS, tid, max(BACKGROUND_LOAD_NICE, os.getpriority(os.PRIO_PROCESS, tid)))
-    except (OSError, AttributeError):  # not Linux, or not allowed: loads keep the worker's priority
-        log.info("could not lower the background loader's priority")
-
-
 def default_worker_id() -> str:
     """``<host>-<pid>``, with characters a key expression cannot hold replaced by ``-``."""
     host = "".join(c if c.isalnum() or c in "_.-" else "-" for c in socket.gethostname()) or "host"
     return f"{host}-{os.getpid()}"[-keys.MAX_CHUNK_CHARS:]
-
-
-@dataclass(eq=False)
-class _LoadJob:
-    """A ``load_scene`` in progress: who to answer, and since when."""
-
-    request: LoadScene
-    respond: Respond
-    start: float
-    future: Future | None = field(default=None, repr=False)
 
 
 class SceneWorker:
@@ -115,7 +87,8 @@ class SceneWorker:
         backend: ``auto``, ``egl`` or ``raycast``; ``auto`` chooses per scene from its cameras.
         worker_id: this worker's id in the run; default ``<host>-<pid>``.
         limits: what one request and the whole worker may ask for.
-        threads: raycast tracing threads; default: the CPUs this process may use, at most 8.
+        threads: raycast tracing threads; default: the CPUs this process may use, at most 8. Also
+            bounds the loads run at once before the first step (:func:`~visfly_dist.scene_worker.loads.parallel_loads`).
 
     Attributes:
         tracer: the raycast backend's tracer, ``native`` or ``embreex`` (the fallback).
@@ -153,11 +126,7 @@ class SceneWorker:
         self._last_encode_s = 0.0
         # The inbox holds Zenoh queries (from Zenoh's thread) and finished loads (from the loader).
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
-        # Loads before the first step (start-up, a replacement taking over) get a loader of their own
-        # priority; loads that arrive while steps are served (swaps, rebalancing) run below them.
-        self._loader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scene-loader")
-        self._background_loader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="scene-loader-background",
-                                                     initializer=_lower_priority)
+        self._loader = SceneLoader(roots, backend, threads, parallel_loads(threads), LOAD_RESERVE_BYTES, self._inbox.put)
         self._stepping = False  # a step request was served
         self._stopping = False
         self._started = time.monotonic()
@@ -252,7 +221,7 @@ class SceneWorker:
             item = self._inbox.get(timeout=timeout_s)
         except queue.Empty:
             return
-        if isinstance(item, _LoadJob):
+        if isinstance(item, LoadJob):
             self._finish_load(item)
         else:
             self._answer(item)
@@ -275,8 +244,7 @@ class SceneWorker:
                 except Exception:  # the session may already be gone
                     log.debug("undeclare failed", exc_info=True)
         self._token = self._queryable = None
-        self._loader.shutdown(wait=False, cancel_futures=True)
-        self._background_loader.shutdown(wait=False, cancel_futures=True)
+        self._loader.close()
         shutting_down = error_message("WorkerShutdown", ErrorCode.SHUTTING_DOWN,
                                       f"worker {self.worker_id!r} is shutting down")
         for job in self._scenes.pop_loading():
@@ -286,7 +254,7 @@ class SceneWorker:
                 item = self._inbox.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(item, _LoadJob):  # already answered above; free what it built
+            if isinstance(item, LoadJob):  # already answered above; free what it built
                 if item.future is not None and item.future.done() and item.future.exception() is None:
                     item.future.result().discard()
             else:
@@ -390,7 +358,7 @@ class SceneWorker:
     # -- loads -----------------------------------------------------------------------------------
 
     def _start_load(self, request: LoadScene, respond: Respond, start: float) -> None:
-        """Check the bounds, mark the key as loading and hand the heavy half to the loader thread."""
+        """Check the bounds, mark the key as loading and queue the heavy half for the loader."""
         key = request.scene_key
         if len(key) > self.limits.max_key_chars:
             raise ProtocolError(f"scene_key of {len(key)} chars exceeds this worker's bound of "
@@ -402,20 +370,43 @@ class SceneWorker:
             raise SceneError(f"this worker holds {len(self._scenes)} scenes, its bound (--max-scenes); "
                              "unload one or load on another worker", code=ErrorCode.OVERLOADED)
         self._check_memory("before loading")
-        job = _LoadJob(request, respond, start)
+        job = LoadJob(request, respond, start)
         self._scenes.begin_load(key, job)
-        loader = self._background_loader if self._stepping else self._loader
-        job.future = loader.submit(prepare_scene, request, self.scene_roots, self.backend, self.threads)
-        job.future.add_done_callback(lambda _: self._inbox.put(job))  # runs on the loader thread
+        self._loader.add(job)
+        self._start_loads()
 
-    def _finish_load(self, job: _LoadJob) -> None:
-        """On the serving thread: install the prepared scene and answer the load."""
+    def _start_loads(self) -> None:
+        """Start every waiting load the loader lets start now; one the worker's memory no longer
+        allows is refused here, one unloaded while it waited is dropped."""
+        while (job := self._loader.next_job(resident_bytes(), self.limits.max_memory_bytes)) is not None:
+            key = job.request.scene_key
+            if not self._scenes.owns_load(key, job):  # unloaded while waiting (already answered)
+                continue
+            try:
+                self._check_memory("before loading")
+            except SceneError as exc:
+                self._scenes.end_load(key, job)
+                job.respond(False, self._error_reply(exc))
+                continue
+            self._loader.run(job)
+
+    def _finish_load(self, job: LoadJob) -> None:
+        """On the serving thread: install the prepared scene, answer the load, start the next ones."""
+        self._loader.finished(job)
+        try:
+            self._install(job)
+        finally:
+            self._start_loads()
+
+    def _install(self, job: LoadJob) -> None:
         request = job.request
         assert job.future is not None and job.future.done()
         if not self._scenes.end_load(request.scene_key, job):  # unloaded while loading
             if job.future.exception() is None:
                 job.future.result().discard()
             return
+        if job.child_s is not None:
+            self._timer.add("generate_in_child", job.child_s)
         prepared: PreparedScene | None = None
         try:
             prepared = job.future.result()
@@ -466,7 +457,9 @@ class SceneWorker:
 
     def _step(self, request: StepRequest, timings: dict[str, float]) -> dict[str, Any]:
         """Every entry rendered and queried; the reply's arrays hold all entries' rows in order."""
-        self._stepping = True
+        if not self._stepping:
+            self._stepping = True
+            self._loader.steps_began()
         # Resolve every key and check the bounds before any work, so a bad request costs nothing.
         loaded, same_cameras = self._scenes.lookup(request.keys)
         if request.render and loaded:

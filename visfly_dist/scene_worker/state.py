@@ -60,18 +60,21 @@ class PreparedScene:
             self.renderer.close()
 
 
-def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str, threads: int | None = None) -> PreparedScene:
+def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str, threads: int | None = None,
+                  scene: Scene | None = None) -> PreparedScene:
     """Resolve a load request's source under ``roots``; build its queries and (unless EGL) renderer.
 
     Safe on any thread. Args as :func:`assemble_scene`'s inputs: the validated request, the scene
-    roots (never empty: no unconfined reads) and the backend (``auto``, ``egl`` or ``raycast``).
+    roots (never empty: no unconfined reads) and the backend (``auto``, ``egl`` or ``raycast``);
+    ``scene``: the source already resolved (generated in a child process), else it is resolved here.
 
     Raises:
         SceneError: the source is unknown, unreadable, outside ``roots``, or this worker's backend
             cannot render its cameras.
     """
     assert roots, "a worker always has at least one scene root"
-    scene = resolve_source(request.source, list(roots))
+    if scene is None:
+        scene = resolve_source(request.source, list(roots))
     queries = ObstacleQueries(scene, drone_radius=request.drone_radius, threads=threads)
     renderer = None
     if _backend_for(request, backend) != "egl":
@@ -177,10 +180,14 @@ class SceneTable:
 
     def end_load(self, key: str, job: Any) -> bool:
         """Clear the loading mark of ``key`` if ``job`` still owns it; False if it was dropped."""
-        if self._loading.get(key) is not job:
+        if not self.owns_load(key, job):
             return False
         del self._loading[key]
         return True
+
+    def owns_load(self, key: str, job: Any) -> bool:
+        """Whether ``job`` is still the load in progress of ``key`` (not cancelled by an unload)."""
+        return self._loading.get(key) is job
 
     def is_loading(self, key: str) -> bool:
         return key in self._loading
