@@ -295,6 +295,39 @@ def test_aggregator_steps_through_segments_and_leaves_no_file_after_kill_and_clo
     assert _shm_files(run) == []
 
 
+def _links(fd_dir: str) -> list[tuple[str, str]]:
+    """``(path, target)`` of each descriptor in ``fd_dir`` (one closed while listing is left out)."""
+    out = []
+    for fd in os.listdir(fd_dir):
+        try:
+            out.append((os.path.join(fd_dir, fd), os.readlink(os.path.join(fd_dir, fd))))
+        except FileNotFoundError:
+            continue
+    return out
+
+
+def test_observing_goes_on_while_another_process_tries_to_truncate_the_learners_segments():
+    """What a process of the user finds of a live learner (its descriptors in /proc) it cannot
+    resize: the learner reads on, with its images in place."""
+    with make_aggregator() as agg:
+        poses = spawn_poses(agg)
+        first = agg.observe(poses)
+        depth = first.images["depth"].copy()
+        segments = [path for path, link in _links(f"/proc/{os.getpid()}/fd")
+                    if link.startswith(f"/memfd:visfly-img-{agg.run_id}-")]
+        assert segments
+        for path in segments:
+            resizer = subprocess.run([sys.executable, "-c", RESIZER, path], capture_output=True, text=True,
+                                     timeout=60, cwd=REPO)
+            assert resizer.returncode == 0 and "succeeded" not in resizer.stdout, resizer.stdout + resizer.stderr
+        np.testing.assert_array_equal(first.images["depth"], depth)
+        for _ in range(3):
+            obs = agg.observe(poses)
+            assert not obs.lost.any()
+            np.testing.assert_array_equal(obs.images["depth"], depth)
+        assert all(h["image_segments"] for h in agg.health())  # still written in place
+
+
 class _SeenFromAnotherPidNamespace:
     """``os`` for :mod:`image_shm`, whose ``getpid`` is another process's: what a worker in another pid
     namespace (a container) finds at ``/proc/<pid>/fd/<fd>``."""
