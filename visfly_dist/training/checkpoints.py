@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.running_mean_std import RunningMeanStd
@@ -28,7 +29,7 @@ def norm_path(checkpoint: Path) -> Path:
 
 def save_normalization(venv: VecNormalize, path: Path) -> None:
     """Write ``venv``'s running statistics to ``path`` (npz)."""
-    arrays: dict[str, np.ndarray] = {
+    arrays: dict[str, Any] = {  # arrays and numpy scalars (np.savez's stubs read a ** dict as its flags too)
         "clip_obs": np.float64(venv.clip_obs),
         "clip_reward": np.float64(venv.clip_reward),
         "epsilon": np.float64(venv.epsilon),
@@ -50,7 +51,9 @@ def load_normalization(venv: VecEnv, path: Path) -> VecNormalize:
     """Wrap ``venv`` in a frozen ``VecNormalize`` (``training=False``) with the statistics at ``path``."""
     with np.load(path, allow_pickle=False) as data:
         keys = sorted({name.split("/")[1] for name in data.files if name.startswith("obs/")})
-        missing = [k for k in keys if k not in venv.observation_space.spaces]
+        space = venv.observation_space
+        observed = space.spaces if isinstance(space, spaces.Dict) else {}
+        missing = [k for k in keys if k not in observed]
         if missing:
             raise ConfigError(f"normalisation file {path} has entries {missing} the env does not observe; is it from another task?")
         wrapped = VecNormalize(

@@ -294,7 +294,7 @@ class ImageEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if not self._channels_last:
-            self.trunk.to(memory_format=torch.channels_last)
+            self.trunk.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # not in torch's stubs
             self._channels_last = True
         return self.head(self.trunk(self.normalizer(x)))
 
@@ -351,8 +351,9 @@ class VisflyExtractor(BaseFeaturesExtractor):
                 encoders[key] = ImageEncoder(space, backbone, depth_scale, key)
                 total += IMAGE_FEATURES
             elif len(space.shape) == 2:
-                encoders[key] = RowwiseMLP(*space.shape)
-                total += encoders[key].out_dim
+                rowwise = RowwiseMLP(*space.shape)
+                encoders[key] = rowwise
+                total += rowwise.out_dim
             else:
                 encoders[key] = mlp(space.shape[0])
                 total += VECTOR_HIDDEN[-1]
