@@ -2,9 +2,10 @@
 
     python bench/episode_ends.py [--task navigation] [--steps 300] [--kill-at 60] [--hold 0 30]
 
-For each ``lost_hold_s`` in ``--hold`` (0 cuts lost agents at once, as before holding existed), one
-env with two local workers (the task's defaults otherwise: scenes, swaps) is stepped with a fixed
-random policy; at step ``--kill-at`` one worker is SIGKILLed (it is respawned, as by default). It
+For each ``lost_hold_s`` in ``--hold`` (0 cuts lost agents at once, as before holding existed; no
+``--hold``: the env's default), one env with two local workers (the task's defaults otherwise:
+scenes, swaps) is stepped with a fixed random policy; at step ``--kill-at`` (-1: never) one worker
+is SIGKILLed (it is respawned, as by default). It
 prints one JSON line per setting: episodes per end cause (``lost`` and ``swapped`` among them),
 agent-steps held, and the seconds from the kill until every agent was served again.
 """
@@ -25,10 +26,13 @@ from visfly_dist.tasks import make_env
 from visfly_dist.tasks.outcomes import end_cause
 
 
-def run(task: str, steps: int, kill_at: int, hold: float, num_envs: int, seed: int) -> dict:
-    env = make_env(task, num_envs=num_envs, lost_hold_s=hold, seed=seed,
-                   pool=PoolConfig(num_local_workers=2, backend="raycast"))
+def run(task: str, steps: int, kill_at: int, hold: float | None, num_envs: int, seed: int) -> dict:
+    settings = {} if hold is None else {"lost_hold_s": hold}
+    env = make_env(task, num_envs=num_envs, seed=seed, pool=PoolConfig(num_local_workers=2, backend="raycast"),
+                   **settings)
     causes: Counter[str] = Counter()
+    cut_by_swap = 0  # episodes cut because their scene was swapped (the env's ``swapped`` flag; the
+    # ``swapped`` cause also counts teammates cut by a teammate's end in team tasks)
     held_steps, killed_at, served_at = 0, None, None
     rng = np.random.default_rng(seed)
     started = time.monotonic()
@@ -47,11 +51,12 @@ def run(task: str, steps: int, kill_at: int, hold: float, num_envs: int, seed: i
                 served_at = time.monotonic()
             for done, info in zip(dones, infos):
                 if done:
+                    cut_by_swap += bool(info.get("swapped"))
                     causes[end_cause(info, info["episode"]["l"], env.config.max_episode_steps)] += 1
     finally:
         env.close()
     return {"task": task, "lost_hold_s": hold, "steps": steps, "num_envs": num_envs,
-            "episodes": sum(causes.values()), "ends": dict(causes), "held_agent_steps": held_steps,
+            "episodes": sum(causes.values()), "ends": dict(causes), "cut_by_scene_swap": cut_by_swap, "held_agent_steps": held_steps,
             "recovery_s": None if served_at is None else round(served_at - killed_at, 2),
             "killed_after_s": None if killed_at is None else round(killed_at - started, 2),
             "seconds": round(time.monotonic() - started, 2)}
@@ -62,7 +67,7 @@ def main() -> None:
     parser.add_argument("--task", default="navigation")
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--kill-at", type=int, default=60)
-    parser.add_argument("--hold", type=float, nargs="+", default=[0.0, 30.0])
+    parser.add_argument("--hold", type=float, nargs="+", default=[None])
     parser.add_argument("--num-envs", type=int, default=32)
     parser.add_argument("--seed", type=int, default=11)
     args = parser.parse_args()
