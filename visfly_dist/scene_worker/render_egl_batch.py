@@ -24,9 +24,11 @@ gives its tiles' images in output order, straight into the output array (one rea
 is read as ``(n, H, W, 3)`` and transposed once). Without ``glMultiDrawElementsIndirect`` (GL < 4.3,
 or ``VISFLY_EGL_CULL=0``) every tile draws the whole scene, instanced.
 
-Optionally (:attr:`BatchEglRenderer.lanes`, default 1) the drones of a call are split between
-several contexts drawing at once on their own threads: llvmpipe shades vertices and sets triangles
-up on the thread that draws, so one context keeps about one core busy whatever its raster threads do.
+On a CPU rasteriser the drones of a call are split between *lanes* (:attr:`BatchEglRenderer.lanes`):
+contexts drawing at once, each on its own thread. llvmpipe shades vertices, clips and sets
+triangles up on the thread that draws, and that is most of a depth image's cost (the triangles in
+view, most smaller than a pixel), so one context keeps one core busy while the raster threads wait
+for its frame. On a GPU one lane is enough.
 
 Outputs match the ray tracer: pixels are sampled at their centres (single sample), depth is the
 eye-space z computed per fragment in float32 (``far`` where nothing is hit; nothing nearer than
@@ -55,6 +57,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from visfly_dist.errors import ConfigError  # noqa: E402
+from visfly_dist.host import usable_cores  # noqa: E402
 from visfly_dist.protocol.cameras import CameraSpec  # noqa: E402
 from visfly_dist.scene_worker.camera_math import CAMERA_TO_GL, camera_world_poses, spheres_in_view  # noqa: E402
 from visfly_dist.scene_worker.render_common import (  # noqa: E402
@@ -65,7 +68,7 @@ from visfly_dist.scene_worker.render_common import (  # noqa: E402
     Renderer,
     drone_segmentation_id,
 )
-from visfly_dist.scene_worker.render_egl import gl_context  # noqa: E402
+from visfly_dist.scene_worker.render_egl import extra_context, gl_context, gl_device  # noqa: E402
 from visfly_dist.scenes.scene import Scene  # noqa: E402
 
 DRONE_SUBDIVISIONS = 2   # icosphere of 320 faces: within 1.8% of the radius
@@ -74,6 +77,7 @@ BIG_FACE_M = 1.0         # faces with a bounding radius above this (m) are chunk
 MAX_ATLAS = 8192         # pixels per side of the atlas at most (also capped by the GL limits)
 KINDS = ("depth", "segmentation", "rgb")
 MIN_TILES_PER_LANE = 8   # fewer drones per lane than this: fewer lanes
+MAX_DEFAULT_LANES = 8    # lanes on a CPU rasteriser by default: one per usable core, at most this
 _TILE_TEXELS = 4         # per tile: 3 rows of the world -> eye matrix, then (place x, place y, 0, 0)
 
 VERTEX_SHADER = """
@@ -421,10 +425,11 @@ class BatchEglRenderer(Renderer):
 
     @property
     def lanes(self) -> int:
-        """Contexts drawing one call's cameras at once, each on its own thread (``VISFLY_EGL_LANES``
-        or the ``lanes`` argument; default 1). llvmpipe shades vertices and sets triangles up on the
-        thread that draws, so on an idle many-core host more lanes may help; on the shared 2-core
-        machine of BENCHMARKS.md two lanes cost 30% more CPU and were slower, so 1 is the default."""
+        """Contexts drawing one call's cameras at once, each on its own thread: the ``lanes``
+        argument, else ``VISFLY_EGL_LANES``, else one per core this process may use (at most
+        ``MAX_DEFAULT_LANES``) on a CPU rasteriser and 1 on a GPU. With llvmpipe a context's
+        vertex and triangle set-up runs on its drawing thread only (module docstring); on the 2-core
+        machine of BENCHMARKS.md two lanes took a 100-camera 64x64 depth call from 43 to 32 ms for 5% more CPU."""
         if self._lanes_asked is not None:
             return self._lanes_asked
         value = os.environ.get("VISFLY_EGL_LANES", "").strip()
@@ -432,7 +437,7 @@ class BatchEglRenderer(Renderer):
             if not value.isdigit() or int(value) < 1:
                 raise ConfigError(f"VISFLY_EGL_LANES={value!r} must be an int >= 1")
             return int(value)
-        return 1
+        return 1 if gl_device().is_gpu else min(MAX_DEFAULT_LANES, usable_cores())
 
     def _move(self, translations: np.ndarray) -> None:
         self._translations = np.asarray(translations, np.float64)
@@ -606,8 +611,6 @@ class BatchEglRenderer(Renderer):
         """Render every camera of ``poses`` into ``out[camera.name]`` ``(n, C, H, W)``: the drones split
         between the lanes (:attr:`lanes`), each lane on its own thread and context."""
         lanes = min(self.lanes, max(1, len(poses) // MIN_TILES_PER_LANE))
-        from visfly_dist.scene_worker.render_egl import extra_context
-
         while len(self._lanes) < lanes - 1:
             context = extra_context()
             lane = ThreadPoolExecutor(1, thread_name_prefix="egl-lane")
