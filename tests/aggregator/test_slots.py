@@ -1,4 +1,7 @@
-"""The slot table alone: placement, orphaning, rebalancing and swaps as plans, against a fake pool."""
+"""The slot table alone: placement, orphaning, rebalancing and swaps as plans, against a fake pool.
+
+Plans are values: planning changes nothing, and the table changes only when told a move started
+(``start_move``), ended (``finish_move`` / ``fail_move``) or a worker left (``orphan_worker``)."""
 
 from __future__ import annotations
 
@@ -24,10 +27,21 @@ class FakePool:
         self.generations[worker] = self.generations.get(worker, 0) + 1
 
 
+def _start(table: SlotTable, plan) -> None:
+    """Every load of ``plan`` is sent."""
+    for slot, move in plan:
+        table.start_move(slot, move)
+
+
 def _carry_out(table: SlotTable, plan) -> None:
-    """Every load answers: switch each planned slot."""
+    """Every load of ``plan`` is sent and answers: each planned slot switches."""
+    _start(table, plan)
     for slot, move in plan:
         table.finish_move(slot, move, np.zeros((2, 3)), {})
+
+
+def _state(table: SlotTable) -> list[tuple]:
+    return [(s.worker, s.key, s.source, s.version, s.resets, s.move) for s in table.slots]
 
 
 def _counts(table: SlotTable, live) -> dict[str, int]:
@@ -37,10 +51,15 @@ def _counts(table: SlotTable, live) -> dict[str, int]:
 def test_placement_spreads_orphans_over_the_least_loaded_workers():
     pool = FakePool("a", "b", "c")
     table = SlotTable([f"gen:x?seed={i}" for i in range(7)], agents_per_scene=2)
+    before = _state(table)
     plan = table.plan_placement(pool.live, pool.generations)
-    assert len(plan) == 7 and all(table.slots[s].move is m for s, m in plan)
+    assert len(plan) == 7 and _state(table) == before                         # a plan is a value: nothing changed
+    assert table.plan_placement(pool.live, pool.generations) == plan          # so planning again gives the same plan
+    _start(table, plan)
+    assert all(table.slots[s].move is m for s, m in plan)
     assert table.plan_placement(pool.live, pool.generations) == []  # moves in flight are not planned twice
-    _carry_out(table, plan)
+    for slot, move in plan:
+        table.finish_move(slot, move, np.zeros((2, 3)), {})
     assert sorted(_counts(table, pool.live).values()) == [2, 2, 3]
     assert table.agents_of(3).tolist() == [6, 7] and table.agent_scene.tolist()[6:8] == [3, 3]
 
@@ -66,6 +85,7 @@ def test_rebalancing_moves_scenes_to_a_new_worker_until_loads_differ_by_at_most_
     pool.join("b")
     plan = table.plan_rebalance(pool.live, pool.generations)
     assert len(plan) == 3 and all(m.worker == "b" and m.reason == "rebalance" for _, m in plan)
+    _start(table, plan)
     assert all(table.slots[s].worker == "a" for s, _ in plan)  # still served by a until the load answers
     olds = [table.finish_move(s, m, np.zeros((2, 3)), {}) for s, m in plan]
     assert all(w == "a" for w, _ in olds) and len({k for _, k in olds}) == 3
@@ -80,13 +100,33 @@ def test_a_swap_loads_the_next_source_under_a_fresh_key_and_a_failed_move_change
     key = table.slots[0].key
     move = table.plan_swap(0, "second", pool.generations)
     assert move is not None and move.key != key and move.source == "second"
+    table.start_move(0, move)
     table.fail_move(0, move)
     assert table.slots[0].source == "first" and table.slots[0].key == key and table.slots[0].move is None
-    move = table.plan_swap(0, "second", pool.generations)
-    table.finish_move(0, move, np.ones((2, 3)), {"goal": [1, 2, 3]})
+    again = table.plan_swap(0, "second", pool.generations)
+    assert again is not None and again.key != move.key  # a fresh key: a late reply to the failed load names the old one
+    table.start_move(0, again)
+    table.finish_move(0, again, np.ones((2, 3)), {"goal": [1, 2, 3]})
     assert table.slots[0].source == "second" and table.slots[0].metadata == {"goal": [1, 2, 3]}
     table.orphan_worker("a")
-    assert table.plan_swap(0, "third", pool.generations) is None and table.slots[0].source == "third"
+    assert table.plan_swap(0, "third", pool.generations) is None and table.slots[0].source == "second"
+    table.set_source(0, "third")  # no worker to load it on: placed with the new source later
+    (placed,) = table.plan_placement(["b"], {"b": 1})
+    assert placed[1].source == "third"
+
+
+def test_resets_make_a_slot_due_for_a_swap_every_so_many_and_never_while_it_moves():
+    pool = FakePool("a")
+    table = SlotTable(["s", "t"], agents_per_scene=2)
+    _carry_out(table, table.plan_placement(pool.live, pool.generations))
+    assert not table.note_resets(0, 2, every=3) and table.note_resets(0, 1, every=3)  # the third reset: due
+    assert not table.note_resets(0, 2, every=3)                                       # counting again from zero
+    move = table.plan_swap(0, "u", pool.generations)
+    table.start_move(0, move)
+    assert not table.note_resets(0, 5, every=3)                                       # not while its swap loads
+    table.finish_move(0, move, np.zeros((2, 3)), {})
+    assert table.note_resets(0, 1, every=3)                                           # due at its next reset after the move
+    assert not table.note_resets(1, 2, every=3)                                       # per slot
 
 
 def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key_or_a_move_ends():
@@ -100,7 +140,8 @@ def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key_or_a_mov
     assert placed > start
     assert table.orphan_worker("nobody") == [] and table.revision == placed
     move = table.plan_swap(0, "t", pool.generations)
-    assert table.revision == placed
+    table.start_move(0, move)
+    assert table.revision == placed  # a started move serves nothing yet
     table.fail_move(0, move)
     failed = table.revision
     assert failed > placed  # the slot may be planned again
@@ -114,10 +155,12 @@ def test_a_rejoining_worker_gets_its_share_while_swaps_are_in_flight_and_no_slot
     pool = FakePool("a")
     table = SlotTable([f"s{i}" for i in range(6)], agents_per_scene=1)
     _carry_out(table, table.plan_placement(pool.live, pool.generations))
-    swaps = [table.plan_swap(i, f"next{i}", pool.generations) for i in (4, 5)]   # two swap loads in flight on a
-    assert all(m is not None and m.worker == "a" for m in swaps)
+    swaps = [(i, table.plan_swap(i, f"next{i}", pool.generations)) for i in (4, 5)]   # two swap loads in flight on a
+    assert all(m is not None and m.worker == "a" for _, m in swaps)
+    _start(table, swaps)
     pool.join("b")
     plan = table.plan_rebalance(pool.live, pool.generations)
     assert len(plan) == 3 and {s for s, _ in plan}.isdisjoint({4, 5})           # swapping slots stay put
+    _start(table, plan)
     assert table.plan_rebalance(pool.live, pool.generations) == []              # pending moves count on b
     assert table.loads(pool.live) == {"a": 3, "b": 3}

@@ -1,9 +1,11 @@
 """The aggregator: poses in, observations out, one round trip per step; scenes kept served.
 
-It ties three parts together: the slot table (:mod:`.slots`, pure placement plans), the worker
-pool (:mod:`.pool`, the only I/O) and the assembler (:mod:`.assembler`, replies into buffers).
-Workers on this host write their images into image segments (:mod:`.image_shm`, with shared
-memory on) instead of the reply.
+It ties the parts together: the slot table (:mod:`.slots`, pure placement plans), the worker pool
+(:mod:`.pool`, the only I/O), the step plan (:mod:`.step_plan`, which scene entries each worker's
+request holds), the assembler (:mod:`.assembler`, replies into buffers), scene moves
+(:mod:`.scene_moves`, loads, switches and unloads in the background) and spawn pools
+(:mod:`.spawn_pools`, start positions drawn locally). Workers on this host write their images into
+image segments (:mod:`.image_shm`, with shared memory on) instead of the reply.
 
 One step is :meth:`Aggregator.submit` then :meth:`Aggregator.collect`: ``submit`` groups the poses
 by worker and sends ONE request per worker (with the spawn poses of agents about to reset, so
@@ -14,9 +16,11 @@ groups of agents), and :meth:`wait_any` tells which is ready.
 Everything slow happens in the background, never inside a step: scene loads for orphans,
 rebalancing and scene swaps are moves (load under a fresh key, switch when the load answered,
 unload the old key two collects later, when no request in flight can still name it); spawn pools
-are refreshed ahead of use.
+are refreshed ahead of use. These requests wait in one list, in the order they were sent, and are
+taken in at one place, :meth:`Aggregator._apply_background`, after each collect.
 
-Failure policy (one place, :meth:`_handle_failure`):
+Failure policy (one place, :meth:`_handle_failure`, with what a failed load or spawn request does in
+:meth:`_finish_load` and :meth:`_finish_spawn`):
 - a worker that dies (liveliness DELETE), misses a deadline or answers ``unknown scene`` (it
   restarted) loses its slots: they become orphans, placed on live workers in the background; the
   agents of a failed request get their last good data and ``lost=True`` (the env truncates them);
@@ -49,14 +53,12 @@ from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.scene_moves import LoadJob, PendingSwitch, ReconcileJob, SceneMoves, UnloadJob
 from visfly_dist.aggregator.slots import SlotTable
 from visfly_dist.aggregator.spawn_pools import AgentStreams, PoolKey, SpawnJob, SpawnPools, SpawnSpec, spawn_spec
+from visfly_dist.aggregator.step_plan import StepPlans, WorkerEntries, plan_entries
 from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, step_message
 
 log = logging.getLogger(__name__)
-
-MAX_CACHED_PLANS = 8
-"""Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
 __all__ = ["Aggregator", "Observation", "StepTicket"]
 
@@ -82,6 +84,24 @@ def _reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:
 def is_unknown_scene(err: RemoteError) -> bool:
     """The worker does not hold a scene key we sent: it restarted since the scene was loaded."""
     return err.code == ErrorCode.UNKNOWN_SCENE
+
+
+def _step_timings(batch: BatchTimings, workers: list[dict], assemble_s: float, total_s: float) -> dict[str, float]:
+    """A step's ``obs.timings``: ours, the slowest worker's own stages, and the transport in between."""
+    out = {"fanout_s": batch.fanout_s, "wait_s": batch.wait_s, "decode_s": batch.decode_s,
+           "assemble_s": assemble_s, **batch.extra}
+    own = set(out)
+    worker_total = 0.0
+    for wt in workers:
+        stages = {k: float(v) for k, v in wt.items() if isinstance(v, (int, float)) and k != "total_s"}
+        for stage, seconds in stages.items():
+            name = f"worker_{stage}" if stage in own else stage  # the worker's decode_s is not ours
+            out[name] = max(out.get(name, 0.0), seconds)
+        worker_total = max(worker_total, float(wt.get("total_s", sum(stages.values()))))
+    out["worker_total_s"] = worker_total
+    out["transport_s"] = max(0.0, batch.fanout_s + batch.wait_s - worker_total)
+    out["total_s"] = total_s
+    return out
 
 
 @dataclass
@@ -159,8 +179,7 @@ class Aggregator:
         self._last = blank_observation(cameras, self.num_agents, self.search_radius)
         self._last_private = True  # False while _last is an observation handed out by collect()
         self._background: list[Job] = []
-        self._plans: dict[bytes, dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]] = {}
-        self._plans_revision = -1
+        self._plans = StepPlans(self.table)
         self._settled: tuple[int, tuple] | None = None  # (table revision, live generations) of a pass with nothing to do
         self._streams = AgentStreams(self.num_agents)
         self.reseed(self.seed)
@@ -260,6 +279,22 @@ class Aggregator:
         """Whether a scene load, spawn refresh or unload is still in flight (tests, diagnostics)."""
         return bool(self._background)
 
+    def health(self) -> list[dict[str, Any]]:
+        """Each live worker's health reply, plus ``local`` and the ``slots`` it serves."""
+        self._require_started()
+        live = self._pool.live_workers()
+        replies = self._pool.call([(w, Health().to_message()) for w in live], self.pool_config.step_timeout_s)
+        out = []
+        for reply in replies:
+            entry = {k: v for k, v in (reply.message or {}).items() if k not in ("version", "type")}
+            entry["worker_id"] = reply.worker_id
+            entry["local"] = self._pool.is_local(reply.worker_id)
+            entry["slots"] = [s.index for s in self.table.slots if s.worker == reply.worker_id]
+            if reply.failure is not None or reply.error is not None:
+                entry["error"] = reply.failure or str(reply.error)
+            out.append(entry)
+        return out
+
     # ----- one step --------------------------------------------------------------------------
 
     def observe(self, poses: np.ndarray, agents: np.ndarray | None = None, sim_time: float = 0.0) -> Observation:
@@ -293,28 +328,28 @@ class Aggregator:
         spawn_agents = self._agent_index(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
         spawn_rows = self._pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents)
         self._maintain()
-        obs_plan = self._step_plan(agents)
-        spawn_plan = self._plan_entries(spawn_agents)
+        obs_plan = self._plans.get(agents)
+        spawn_plan = plan_entries(self.table, spawn_agents)
         workers = sorted(set(obs_plan) | set(spawn_plan))
-        step = self._step_images(workers, agents, spawn_agents)
-        ticket = StepTicket(agents, spawn_agents, _observation(self.cameras, len(agents), step and step.obs),
-                            _observation(self.cameras, len(spawn_agents), step and step.spawn), [], t_start, step)
-        no_entries = ([], [], np.zeros(0, np.int64), [], [])
+        segments, step = self._images, self._step_images(workers, agents, spawn_agents)
+        ticket = StepTicket(agents, spawn_agents, _observation(self.cameras, len(agents), None if step is None else step.obs),
+                            _observation(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
+                            t_start, step)
+        none = WorkerEntries()
         requests, parts = [], []
         for wid in workers:
-            o_keys, o_counts, o_rows, o_slots, o_starts = obs_plan.get(wid, no_entries)
-            s_keys, s_counts, s_rows, _, s_starts = spawn_plan.get(wid, no_entries)
-            poses_w = np.concatenate([rows[o_rows], spawn_rows[s_rows]])
-            times = np.full(len(o_keys) + len(s_keys), float(sim_time)) if sim_time else None
-            target = None if step is None else self._images.target(step, (wid, self._pool.generation(wid)),
-                                                                   o_starts, s_starts)
-            message = step_message(o_keys + s_keys, np.array(o_counts + s_counts, np.int32), poses_w,
+            obs, spawn = obs_plan.get(wid, none), spawn_plan.get(wid, none)
+            poses_w = np.concatenate([rows[obs.rows], spawn_rows[spawn.rows]])
+            times = np.full(len(obs.keys) + len(spawn.keys), float(sim_time)) if sim_time else None
+            target = None if step is None or segments is None else segments.target(
+                step, (wid, self._pool.generation(wid)), obs.starts, spawn.starts)
+            message = step_message(obs.keys + spawn.keys, np.array(obs.counts + spawn.counts, np.int32), poses_w,
                                    search_radius=self.search_radius, times=times, image_segment=target)
             requests.append((wid, message))
-            parts.append((o_slots, o_rows, s_rows))
+            parts.append((obs, spawn))
         t0 = time.perf_counter()
-        for part, pending in zip(parts, self._pool.send(requests, self.pool_config.step_timeout_s)):
-            ticket.parts.append(_WorkerPart(pending, *part))
+        for (obs, spawn), pending in zip(parts, self._pool.send(requests, self.pool_config.step_timeout_s)):
+            ticket.parts.append(_WorkerPart(pending, obs.slots, obs.rows, spawn.rows))
         ticket.timings.fanout_s = time.perf_counter() - t0
         ticket.timings.extra["plan_s"] = t0 - t_start
         return ticket
@@ -350,11 +385,11 @@ class Aggregator:
         replies = self._pool.gather([p.pending for p in ticket.parts], ticket.timings)
         t0 = time.perf_counter()
         worker_timings = []
-        step, failed = ticket.images, False
+        segments, step, failed = self._images, ticket.images, False
         for part, reply in zip(ticket.parts, replies):
             in_place = False
-            if step is not None and reply.message is not None:
-                in_place, problem = self._images.check(step, reply.worker_id, reply.message)
+            if segments is not None and step is not None and reply.message is not None:
+                in_place, problem = segments.check(step, reply.worker_id, reply.message)
                 if problem:
                     reply = Reply(reply.worker_id, failure=problem)
             if reply.message is None:
@@ -369,8 +404,8 @@ class Aggregator:
             if len(part.spawn_rows):
                 scatter_reply(ticket.spawn_obs, part.spawn_rows, _reply_rows(message, slice(n_obs, None)), self.cameras,
                               reply.worker_id, in_place)
-        if step is not None:
-            self._release_images(ticket, step, failed)
+        if segments is not None and step is not None:
+            self._release_images(ticket, segments, step, failed)
         stale = np.flatnonzero(ticket.obs.lost)
         if len(stale):
             copy_rows(ticket.obs, stale, self._last, ticket.agents[stale])
@@ -379,14 +414,14 @@ class Aggregator:
         assemble_s = time.perf_counter() - t0
         self._moves.note_collect()
         self._apply_background()
-        ticket.obs.timings = self._timings(ticket.timings, worker_timings, assemble_s,
+        ticket.obs.timings = _step_timings(ticket.timings, worker_timings, assemble_s,
                                            time.perf_counter() - ticket.started)
         return ticket.obs, ticket.spawn_obs
 
-    def _release_images(self, ticket: StepTicket, step: StepImages, failed: bool) -> None:
+    def _release_images(self, ticket: StepTicket, segments: ImageSegments, step: StepImages, failed: bool) -> None:
         """Done with the step's segment. After a failed request the images are copied out (the late
         worker may still write there); rows written over after their reply was read are lost."""
-        over = self._images.release(step, failed)
+        over = segments.release(step, failed)
         if failed or over:
             ticket.obs = ticket.obs.take(np.arange(len(ticket.agents)))
             ticket.spawn_obs = ticket.spawn_obs.take(np.arange(len(ticket.spawn_agents)))
@@ -396,10 +431,6 @@ class Aggregator:
                 ticket.spawn_obs.lost[part.spawn_rows] = True
                 self._handle_failure(Reply(part.pending.worker_id, failure=(
                     f"image segment {step.segment.name} was written over after its images were read")), part.slots)
-
-    def take_switched(self) -> np.ndarray:
-        """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
-        return self._moves.take_switched()
 
     def _remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
         """Keep the fresh rows as the agents' last good data.
@@ -420,57 +451,93 @@ class Aggregator:
         for key in ("collision", "inside", "nearest", "distance"):
             getattr(last, key)[agents] = getattr(obs, key)[rows]
 
-    def _step_plan(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]:
-        """:meth:`_plan_entries` of the stepped agents, kept while the slot table is unchanged: a
-        training loop steps the same agents (all, or its groups) on the same workers every time."""
-        key = agents.tobytes()
-        if self._plans_revision != self.table.revision:
-            self._plans.clear()
-            self._plans_revision = self.table.revision
-        plan = self._plans.get(key)
-        if plan is None:
-            if len(self._plans) >= MAX_CACHED_PLANS:
-                self._plans.clear()
-            plan = self._plans[key] = self._plan_entries(agents)
-        return plan
+    # ----- spawn draws -----------------------------------------------------------------------
 
-    def _plan_entries(self, agents: np.ndarray) -> dict[str, tuple[list[str], list[int], np.ndarray, list[int], list[int]]]:
-        """Per worker: scene keys, counts, the rows of ``agents`` in request order, the slots, and each
-        entry's first row."""
-        if len(agents) == 0:
-            return {}
+    def sample_spawn(self, agents: np.ndarray, distribution: str, a: Sequence[float], b: Sequence[float],
+                     clearance: float) -> np.ndarray:
+        """Free positions for ``agents``, ``(k, 3)`` float64, drawn locally from per-scene pools.
+
+        Each (scene, distribution) pool of ``max(256, 8 * agents_per_scene)`` positions is sampled
+        by the scene's worker. Each agent draws from its own stream (:meth:`reseed`), so its starts
+        do not depend on the other agents' resets. A pool is refreshed
+        with fresh samples in the background once half of it has been drawn, and replaced when
+        all of it has (at a draw count, not a time, so the same seed gives the same positions).
+        Only the very first draw from a scene waits for its pool.
+        """
+        self._require_started()
+        agents = self._agent_index(agents)
+        spec = spawn_spec(distribution, a, b, clearance)
+        slots = sorted({int(s) for s in self.agent_scene[agents]})
+        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
+        if missing:
+            self._fetch_spawn_pools_now(missing, spec)
+        draws = self._streams.draw(agents)
+        out = np.empty((len(agents), 3), dtype=np.float64)
         slot_of = self.agent_scene[agents]
-        order = np.argsort(slot_of, kind="stable")
-        slots, starts, counts = np.unique(slot_of[order], return_index=True, return_counts=True)
-        out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int]]] = {}
-        for slot, start, count in zip(slots.tolist(), starts.tolist(), counts.tolist()):
-            s = self.table.slots[slot]
-            if s.worker is None:
-                continue
-            keys, cnts, parts, served = out.setdefault(s.worker, ([], [], [], []))
-            keys.append(s.key)
-            cnts.append(count)
-            parts.append(order[start:start + count])
-            served.append(slot)
-        return {w: (k, c, np.concatenate(p), sl, [int(rows[0]) for rows in p]) for w, (k, c, p, sl) in out.items()}
-
-    def _timings(self, batch: BatchTimings, workers: list[dict], assemble_s: float, total_s: float) -> dict[str, float]:
-        out = {"fanout_s": batch.fanout_s, "wait_s": batch.wait_s, "decode_s": batch.decode_s,
-               "assemble_s": assemble_s, **batch.extra}
-        own = set(out)
-        worker_total = 0.0
-        for wt in workers:
-            stages = {k: float(v) for k, v in wt.items() if isinstance(v, (int, float)) and k != "total_s"}
-            for stage, seconds in stages.items():
-                name = f"worker_{stage}" if stage in own else stage  # the worker's decode_s is not ours
-                out[name] = max(out.get(name, 0.0), seconds)
-            worker_total = max(worker_total, float(wt.get("total_s", sum(stages.values()))))
-        out["worker_total_s"] = worker_total
-        out["transport_s"] = max(0.0, batch.fanout_s + batch.wait_s - worker_total)
-        out["total_s"] = total_s
+        for slot in slots:
+            key = self._pool_key(slot, spec)
+            mine = np.flatnonzero(slot_of == slot)
+            out[mine] = self._spawns.draw(key, draws[mine])
+            self._keep_fresh(key)
         return out
 
-    # ----- failures --------------------------------------------------------------------------
+    def reseed(self, seeds: int | Sequence[int], agents: np.ndarray | None = None) -> None:
+        """Restart the spawn draws of ``agents`` (default: all): agent ``agents[i]`` draws from
+        ``seeds[i]``; an int ``seed`` gives agent ``a`` the seed ``seed + a`` (as Gymnasium and SB3 seed
+        sub-envs). The per-scene pools stay as they are."""
+        self._streams.reseed(self._agent_index(agents), seeds)
+
+    def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
+        return PoolKey(slot, self.table.slots[slot].source, spec)
+
+    def _keep_fresh(self, key: PoolKey) -> None:
+        """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn."""
+        in_flight = [j.pending for j in self._background if isinstance(j, SpawnJob) and j.key == key]
+        s = self.table.slots[key.slot]
+        if self._spawns.wants_refresh(key, bool(in_flight)) and s.worker is not None:
+            self._background.append(self._spawns.fetch(key, s.worker, s.key, refresh=True))
+        elif self._spawns.used_up(key):
+            if in_flight:  # bounded wait, so the same seed gives the same positions
+                self._pool.wait_any([in_flight], self.pool_config.step_timeout_s)
+                self._apply_background()
+            self._spawns.replace(key)
+
+    def _fetch_spawn_pools_now(self, slots: list[int], spec: SpawnSpec) -> None:
+        """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""
+        for _ in range(3):
+            jobs = [self._spawns.fetch(self._pool_key(s, spec), worker, self.table.slots[s].key)
+                    for s in slots if (worker := self.table.slots[s].worker) is not None]
+            self._background.extend(jobs)
+            self._pool.gather([j.pending for j in jobs])
+            self._apply_background()
+            slots = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
+            if not slots:
+                return
+            self._place_all_now()
+        raise NoWorkersError(f"run {self.run_id!r}: no worker could sample spawn positions for slots {slots}")
+
+    # ----- scene swaps -----------------------------------------------------------------------
+
+    def note_resets(self, agents: np.ndarray) -> None:
+        """Count episode resets per slot; start loading the next scene of slots due for a swap.
+
+        The swap happens in the background: :meth:`take_switched` reports the agents whose scene
+        changed once the new scene (and its spawn pools) are ready.
+        """
+        self._require_started()
+        agents = self._agent_index(agents)
+        every = self.scene_config.swap_every_resets
+        if every == 0 or len(agents) == 0:
+            return
+        counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
+        gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
+        self._background.extend(self._moves.start_swaps(counts, every, gens))
+
+    def take_switched(self) -> np.ndarray:
+        """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
+        return self._moves.take_switched()
+
+    # ----- failure policy --------------------------------------------------------------------
 
     def _handle_failure(self, reply: Reply, slots: Sequence[int] = ()) -> None:
         """The one failure policy: what a failed or refused request does to its worker and slots."""
@@ -483,8 +550,6 @@ class Aggregator:
             others = [w for w in self._pool.live_workers() if w != reply.worker_id]
             self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
         self._moves.orphan(reply.worker_id, reason)
-
-    # ----- background work -------------------------------------------------------------------
 
     def _maintain(self) -> None:
         """Orphan slots of dead or restarted workers; start loads for orphans; rebalance; wait out outages."""
@@ -527,6 +592,25 @@ class Aggregator:
                 + (f"; {self._pool.startup_report()}" if self._pool.startup_report() else ""))
         return live
 
+    def _place_all_now(self) -> None:
+        """Load every orphan and wait for the loads (start-up, and the rare blocking fallback)."""
+        for _ in range(len(self.table) + 64):
+            if not self.table.orphans():
+                return
+            live = self._pool.require_live()
+            placeable = self._moves.placeable(live)
+            if not placeable:  # every worker is full for now: wait for the first backoff to end
+                time.sleep(max(0.0, self._moves.full_until(live) - time.monotonic()))
+                continue
+            gens = {w: self._pool.generation(w) for w in live}
+            self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens)))
+            jobs = [j for j in self._background if isinstance(j, LoadJob)]
+            self._pool.gather([j.pending for j in jobs])
+            self._apply_background()
+        raise NoWorkersError(f"run {self.run_id!r}: could not place scenes after repeated worker failures")
+
+    # ----- background requests, taken in at one place ----------------------------------------
+
     def _apply_background(self) -> None:
         """Take in every finished background request, in the order they were sent; send the unloads due."""
         self._send_unloads(self._moves.due_unloads())
@@ -546,10 +630,6 @@ class Aggregator:
             else:
                 self._moves.finish_unload(job, reply)
         self._background = still
-
-    def _send_unloads(self, targets: Sequence[tuple[str, str]]) -> None:
-        """Unload each ``(worker, key)`` in the background (:meth:`SceneMoves.send_unloads`)."""
-        self._background.extend(self._moves.send_unloads(targets))
 
     def _finish_load(self, job: LoadJob, reply: Reply, still: list[Job]) -> None:
         """A load answered: its slot switches (a swap once the new scene's spawn pools are in). What
@@ -582,51 +662,6 @@ class Aggregator:
             return
         self._moves.switch(job.slot, move, bounds, metadata)
 
-    # ----- spawn sampling --------------------------------------------------------------------
-
-    def sample_spawn(self, agents: np.ndarray, distribution: str, a: Sequence[float], b: Sequence[float],
-                     clearance: float) -> np.ndarray:
-        """Free positions for ``agents``, ``(k, 3)`` float64, drawn locally from per-scene pools.
-
-        Each (scene, distribution) pool of ``max(256, 8 * agents_per_scene)`` positions is sampled
-        by the scene's worker. Each agent draws from its own stream (:meth:`reseed`), so its starts
-        do not depend on the other agents' resets. A pool is refreshed
-        with fresh samples in the background once half of it has been drawn, and replaced when
-        all of it has (at a draw count, not a time, so the same seed gives the same positions).
-        Only the very first draw from a scene waits for its pool.
-        """
-        self._require_started()
-        agents = self._agent_index(agents)
-        spec = spawn_spec(distribution, a, b, clearance)
-        slots = sorted({int(s) for s in self.agent_scene[agents]})
-        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
-        if missing:
-            self._fetch_spawn_pools_now(missing, spec)
-        draws = self._streams.draw(agents)
-        out = np.empty((len(agents), 3), dtype=np.float64)
-        slot_of = self.agent_scene[agents]
-        for slot in slots:
-            key = self._pool_key(slot, spec)
-            mine = np.flatnonzero(slot_of == slot)
-            out[mine] = self._spawns.draw(key, draws[mine])
-            self._keep_fresh(key)
-        return out
-
-    def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
-        return PoolKey(slot, self.table.slots[slot].source, spec)
-
-    def _keep_fresh(self, key: PoolKey) -> None:
-        """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn."""
-        in_flight = [j.pending for j in self._background if isinstance(j, SpawnJob) and j.key == key]
-        s = self.table.slots[key.slot]
-        if self._spawns.wants_refresh(key, bool(in_flight)) and s.worker is not None:
-            self._background.append(self._spawns.fetch(key, s.worker, s.key, refresh=True))
-        elif self._spawns.used_up(key):
-            if in_flight:  # bounded wait, so the same seed gives the same positions
-                self._pool.wait_any([in_flight], self.pool_config.step_timeout_s)
-                self._apply_background()
-            self._spawns.replace(key)
-
     def _finish_spawn(self, job: SpawnJob, reply: Reply) -> None:
         """A pool arrived (a swap waiting for it may switch now), or the failure policy for its request."""
         if reply.message is None:
@@ -643,79 +678,9 @@ class Aggregator:
         if not job.refresh:
             self._moves.pool_ready(job.key)
 
-    def _fetch_spawn_pools_now(self, slots: list[int], spec: SpawnSpec) -> None:
-        """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""
-        for _ in range(3):
-            jobs = [self._spawns.fetch(self._pool_key(s, spec), worker, self.table.slots[s].key)
-                    for s in slots if (worker := self.table.slots[s].worker) is not None]
-            self._background.extend(jobs)
-            self._pool.gather([j.pending for j in jobs])
-            self._apply_background()
-            slots = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
-            if not slots:
-                return
-            self._place_all_now()
-        raise NoWorkersError(f"run {self.run_id!r}: no worker could sample spawn positions for slots {slots}")
-
-    def reseed(self, seeds: int | Sequence[int], agents: np.ndarray | None = None) -> None:
-        """Restart the spawn draws of ``agents`` (default: all): agent ``agents[i]`` draws from
-        ``seeds[i]``; an int ``seed`` gives agent ``a`` the seed ``seed + a`` (as Gymnasium and SB3 seed
-        sub-envs). The per-scene pools stay as they are."""
-        self._streams.reseed(self._agent_index(agents), seeds)
-
-    # ----- scene swapping --------------------------------------------------------------------
-
-    def note_resets(self, agents: np.ndarray) -> None:
-        """Count episode resets per slot; start loading the next scene of slots due for a swap.
-
-        The swap happens in the background: :meth:`take_switched` reports the agents whose scene
-        changed once the new scene (and its spawn pools) are ready.
-        """
-        self._require_started()
-        agents = self._agent_index(agents)
-        every = self.scene_config.swap_every_resets
-        if every == 0 or len(agents) == 0:
-            return
-        counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
-        gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
-        self._background.extend(self._moves.start_swaps(counts, every, gens))
-
-    # ----- health ----------------------------------------------------------------------------
-
-    def health(self) -> list[dict[str, Any]]:
-        """Each live worker's health reply, plus ``local`` and the ``slots`` it serves."""
-        self._require_started()
-        live = self._pool.live_workers()
-        replies = self._pool.call([(w, Health().to_message()) for w in live], self.pool_config.step_timeout_s)
-        out = []
-        for reply in replies:
-            entry = {k: v for k, v in (reply.message or {}).items() if k not in ("version", "type")}
-            entry["worker_id"] = reply.worker_id
-            entry["local"] = self._pool.is_local(reply.worker_id)
-            entry["slots"] = [s.index for s in self.table.slots if s.worker == reply.worker_id]
-            if reply.failure is not None or reply.error is not None:
-                entry["error"] = reply.failure or str(reply.error)
-            out.append(entry)
-        return out
-
-    # ----- placement at start ----------------------------------------------------------------
-
-    def _place_all_now(self) -> None:
-        """Load every orphan and wait for the loads (start-up, and the rare blocking fallback)."""
-        for _ in range(len(self.table) + 64):
-            if not self.table.orphans():
-                return
-            live = self._pool.require_live()
-            placeable = self._moves.placeable(live)
-            if not placeable:  # every worker is full for now: wait for the first backoff to end
-                time.sleep(max(0.0, self._moves.full_until(live) - time.monotonic()))
-                continue
-            gens = {w: self._pool.generation(w) for w in live}
-            self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens)))
-            jobs = [j for j in self._background if isinstance(j, LoadJob)]
-            self._pool.gather([j.pending for j in jobs])
-            self._apply_background()
-        raise NoWorkersError(f"run {self.run_id!r}: could not place scenes after repeated worker failures")
+    def _send_unloads(self, targets: Sequence[tuple[str, str]]) -> None:
+        """Unload each ``(worker, key)`` in the background (:meth:`SceneMoves.send_unloads`)."""
+        self._background.extend(self._moves.send_unloads(targets))
 
     # ----- input checks ----------------------------------------------------------------------
 

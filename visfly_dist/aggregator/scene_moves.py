@@ -126,10 +126,12 @@ class SceneMoves:
     # ----- loads and switches ----------------------------------------------------------------
 
     def send_loads(self, plan: Sequence[tuple[int, Move]]) -> list[LoadJob]:
-        """Send the load of every move of ``plan``."""
+        """Start every move of ``plan`` (a plan of the slot table) and send its load: the one place
+        moves start."""
         jobs: list[LoadJob] = []
         queued: dict[str, int] = {}  # loads sent to each worker so far in this batch
         for slot, move in plan:
+            self._table.start_move(slot, move)
             ahead = queued.get(move.worker, 0)
             queued[move.worker] = ahead + 1
             # a worker loads one scene at a time: this load may first wait for the ones ahead of it
@@ -145,14 +147,14 @@ class SceneMoves:
     def start_swaps(self, resets: np.ndarray, every: int, generations: dict[str, int]) -> list[LoadJob]:
         """Count ``resets`` (per slot); a slot due for a swap starts loading the dataset's next source."""
         plan = []
-        for index in np.flatnonzero(resets).tolist():
-            slot = self._table.slots[index]
-            slot.resets += int(resets[index])
-            if slot.resets >= every and slot.move is None:
-                slot.resets = 0
-                move = self._table.plan_swap(slot.index, self._dataset.next_source(), generations)
-                if move is not None:
-                    plan.append((slot.index, move))
+        for slot in np.flatnonzero(resets).tolist():
+            if self._table.note_resets(slot, int(resets[slot]), every):
+                source = self._dataset.next_source()
+                move = self._table.plan_swap(slot, source, generations)
+                if move is None:
+                    self._table.set_source(slot, source)
+                else:
+                    plan.append((slot, move))
         return self.send_loads(plan)
 
     def await_pools(self, slot: int, switch: PendingSwitch) -> None:
@@ -181,7 +183,8 @@ class SceneMoves:
         return bool(self._switches)
 
     def switch(self, slot: int, move: Move, bounds: Any, metadata: dict[str, Any]) -> None:
-        """``slot`` now serves ``move``'s scene; its old key is unloaded a little later."""
+        """``slot`` now serves ``move``'s scene (placed, rebalanced or swapped in: the one place a slot
+        changes scene); its old key is unloaded a little later."""
         old_worker, old_key = self._table.finish_move(slot, move, bounds, metadata)
         if old_worker is not None and old_key != move.key:
             self._unloads.append((self._collects + UNLOAD_DELAY_COLLECTS, old_worker, old_key))
@@ -264,7 +267,7 @@ class SceneMoves:
                     "were lost); unloading them", self._run_id, worker, unknown)
         return [(worker, k) for k in unknown]
 
-    # ----- workers that are full, sources that cannot load ------------------------------------
+    # ----- workers that are full, sources that cannot load -----------------------------------
 
     def back_off(self, worker: str, error: RemoteError) -> None:
         """A worker that is full (``overloaded``) gets no new scene for a while (doubling per refusal)."""
@@ -294,4 +297,4 @@ class SceneMoves:
                               + "; ".join(f"{src!r}: {w}" for src, w in self._dataset.dropped.items()))
         s = self._table.slots[slot]
         if s.worker is None and s.source == move.source:
-            s.source = self._dataset.next_source()
+            self._table.set_source(slot, self._dataset.next_source())

@@ -4,8 +4,13 @@ Agents are grouped in slots: agent ``i`` flies in slot ``i // agents_per_scene``
 scene source, served by one worker under one scene key. Moving a slot (to place an orphan, to
 rebalance, or to swap its scene for the next source of the dataset) is a *move*: the new scene is
 loaded under a fresh key while the old one keeps serving, and the slot switches when the load has
-answered. The table only plans; the aggregator carries the plans out and reports back with
-:meth:`SlotTable.finish_move` / :meth:`SlotTable.fail_move`.
+answered.
+
+Plans are values: ``plan_*`` look at the table and change nothing. Only the table writes into its
+slots, when told what happened: :meth:`SlotTable.start_move` (the load was sent),
+:meth:`SlotTable.finish_move` / :meth:`SlotTable.fail_move` (it answered),
+:meth:`SlotTable.orphan_worker`, :meth:`SlotTable.set_source` and :meth:`SlotTable.note_resets`.
+:mod:`.scene_moves` carries the plans out.
 
 Invariants:
 - a slot is served (``worker`` set) only by a worker the caller said is live; :meth:`orphan_worker`
@@ -93,7 +98,7 @@ class SlotTable:
         return lost
 
     def plan_placement(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
-        """Moves that put every orphan without a move in flight on the least-loaded live workers."""
+        """Moves that would put every orphan without a move in flight on the least-loaded live workers."""
         if not live:
             return []
         loads = self.loads(live)
@@ -106,7 +111,7 @@ class SlotTable:
         return plan
 
     def plan_rebalance(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
-        """Moves from the busiest to the idlest worker while their loads differ by more than one slot."""
+        """Moves from the busiest to the idlest worker while their loads would differ by more than one slot."""
         loads = self.loads(live)
         plan: list[tuple[int, Move]] = []
         moving = {s.index for s in self.slots if s.move is not None}
@@ -126,17 +131,36 @@ class SlotTable:
         return plan
 
     def plan_swap(self, slot: int, source: str, generations: dict[str, int]) -> Move | None:
-        """Load ``source`` for ``slot`` on the worker serving it (``None`` while it has none)."""
+        """The move that loads ``source`` for ``slot`` on the worker serving it; ``None`` while it has
+        none (then :meth:`set_source`: it is placed with the new source when a worker takes it)."""
         s = self.slots[slot]
         if s.worker is None:
-            s.source = source  # placed with the new source when a worker takes it
             return None
         return self._move(s, s.worker, source, "swap", generations)
 
     def _move(self, slot: Slot, worker: str, source: str, reason: str, generations: dict[str, int]) -> Move:
-        slot.version += 1
-        slot.move = Move(worker, f"s{slot.index}v{slot.version}", source, reason, generations.get(worker, 0))
-        return slot.move
+        return Move(worker, f"s{slot.index}v{slot.version + 1}", source, reason, generations.get(worker, 0))
+
+    def start_move(self, slot: int, move: Move) -> None:
+        """A planned move is under way (its load was sent); the slot serves its old scene until
+        :meth:`finish_move`. Start each planned move once, and before planning again."""
+        s = self.slots[slot]
+        s.version += 1
+        s.move = move
+
+    def set_source(self, slot: int, source: str) -> None:
+        """An orphan takes another source (a swap while it had no worker, or its source was dropped)."""
+        self.slots[slot].source = source
+
+    def note_resets(self, slot: int, count: int, every: int) -> bool:
+        """Count ``count`` episode resets in ``slot``. True when it is due for a swap (``every`` resets
+        so far, and no move in flight); its count starts again then."""
+        s = self.slots[slot]
+        s.resets += count
+        if s.resets >= every and s.move is None:
+            s.resets = 0
+            return True
+        return False
 
     def finish_move(self, slot: int, move: Move, bounds: np.ndarray, metadata: dict[str, Any]) -> tuple[str | None, str]:
         """The load answered: the slot switches. Returns the (worker, key) the old scene can be unloaded from."""

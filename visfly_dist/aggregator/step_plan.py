@@ -1,0 +1,73 @@
+"""Step plans: which scene entries, and which agents' rows, each worker's request of a step holds.
+
+A step sends one request per worker: the scene keys it serves for the agents stepped, an agent
+count per key, and those agents' poses in request order (grouped by slot). The plan depends only
+on the agents and on the slot table, so :class:`StepPlans` keeps it while the table's revision is
+unchanged: a training loop steps the same agents (all, or each of its groups) on the same workers
+every time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from visfly_dist.aggregator.slots import SlotTable
+
+MAX_CACHED_PLANS = 8
+"""Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
+
+__all__ = ["StepPlans", "WorkerEntries", "plan_entries"]
+
+
+@dataclass(frozen=True)
+class WorkerEntries:
+    """One worker's scene entries for a set of agents (the lists run over its entries)."""
+
+    keys: list[str] = field(default_factory=list)      # scene key of each entry
+    counts: list[int] = field(default_factory=list)    # agents in each entry
+    rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the agents' rows, in request order
+    slots: list[int] = field(default_factory=list)     # slot of each entry
+    starts: list[int] = field(default_factory=list)    # each entry's first row
+
+
+def plan_entries(table: SlotTable, agents: np.ndarray) -> dict[str, WorkerEntries]:
+    """Per worker, the entries of ``agents`` (rows index ``agents``); agents of orphan slots are left out."""
+    if len(agents) == 0:
+        return {}
+    slot_of = table.agent_scene[agents]
+    order = np.argsort(slot_of, kind="stable")
+    slots, starts, counts = np.unique(slot_of[order], return_index=True, return_counts=True)
+    out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int]]] = {}
+    for slot, start, count in zip(slots.tolist(), starts.tolist(), counts.tolist()):
+        s = table.slots[slot]
+        if s.worker is None:
+            continue
+        keys, cnts, parts, served = out.setdefault(s.worker, ([], [], [], []))
+        keys.append(s.key)
+        cnts.append(count)
+        parts.append(order[start:start + count])
+        served.append(slot)
+    return {w: WorkerEntries(k, c, np.concatenate(p), sl, [int(rows[0]) for rows in p]) for w, (k, c, p, sl) in out.items()}
+
+
+class StepPlans:
+    """:func:`plan_entries` of the agents stepped, kept while the slot table is unchanged."""
+
+    def __init__(self, table: SlotTable) -> None:
+        self._table = table
+        self._plans: dict[bytes, dict[str, WorkerEntries]] = {}
+        self._revision = -1
+
+    def get(self, agents: np.ndarray) -> dict[str, WorkerEntries]:
+        key = agents.tobytes()
+        if self._revision != self._table.revision:
+            self._plans.clear()
+            self._revision = self._table.revision
+        plan = self._plans.get(key)
+        if plan is None:
+            if len(self._plans) >= MAX_CACHED_PLANS:
+                self._plans.clear()
+            plan = self._plans[key] = plan_entries(self._table, agents)
+        return plan
