@@ -8,9 +8,10 @@ and transport. Obstacle queries (:class:`ObstacleQueries`, same poses) are timed
 
 The raycast backend is measured with each tracer (``native`` packets and the ``embreex`` fallback) on
 1 and 2 threads. ``egl`` is the batch renderer (every camera of a call in one pass); the bench-only
-backend ``egl-legacy`` is the per-camera renderer it replaced (issue 23), measured in-process only,
-right after ``egl`` for each resolution and kind so that their ratio comes from the same minute. ``cpu_frames_per_s`` is frames per CPU-second of the whole process (every thread):
-the per-core figure, steadier than wall time on a shared machine.
+backend ``egl-legacy`` is the per-camera renderer it replaced (issue 23), measured in-process only.
+In-process, the configurations of one resolution and kind take turns call by call, so that their
+ratios come from the same seconds. ``cpu_frames_per_s`` is frames per CPU-second of the whole
+process (every thread): the per-core figure, steadier than wall time on a shared machine.
 
 JSON rows: ``backend, tracer (raycast only), threads (raycast only), res, kind, agents, frames_per_s,
 cpu_frames_per_s (in-process rows), where (in_process|worker), seconds``; one queries row
@@ -52,9 +53,9 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
                  log: Callable[[str], None] = print, moving: int = 20) -> list[dict[str, Any]]:
     """Measure every backend x resolution x kind, in-process and (if ``worker``) through a worker.
 
-    The raycast backend is measured with each tracer (native packets, embreex) on each thread count,
-    the configurations of one resolution and kind one right after the other, so their ratios come
-    from the same minute of a shared machine.
+    The raycast backend is measured with each tracer (native packets, embreex) on each thread count.
+    The configurations of one resolution and kind take turns, one call each per round, so their
+    ratios come from the same seconds of a shared machine.
 
     Args:
         backends: ``raycast``, ``egl`` and/or ``egl-legacy`` (bench only); default: every available one.
@@ -91,7 +92,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
             configs += [("raycast", tracer, n) for n in threads for tracer in tracers]
         else:
             configs.append((backend, None, None))
-    configs.sort(key=lambda c: c[0] == "egl-legacy")   # egl-legacy right after egl (their ratio is a goal)
+    configs.sort(key=lambda c: c[0] == "egl-legacy")   # egl-legacy rows right after egl's (their ratio is a goal)
     if "egl" in backends:
         from visfly_dist.scene_worker.render_egl import gl_device
 
@@ -100,8 +101,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
     for r in res:
         for kind in kinds:
             cam = CameraSpec(name=kind, kind=kind, width=r, height=r)
-            for backend, tracer, n in configs:
-                wall, cpu = _time_in_process(backend, tracer, n, world, cam, poses, reps)
+            for (backend, tracer, n), (wall, cpu) in zip(configs, _time_in_process(configs, world, cam, poses, reps)):
                 rows.append(_row(backend, r, kind, cameras, wall, "in_process", tracer, n, cpu))
                 log(f"[bench render] {_label(rows[-1])} {kind} {r}x{r} in-process: "
                     f"{rows[-1]['frames_per_s']:.1f} frames/s, {rows[-1]['cpu_frames_per_s']:.1f} frames/CPU-s")
@@ -183,27 +183,36 @@ def goal_rows(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def _time_in_process(backend: str, tracer: str | None, threads: int | None, world: Any, cam: CameraSpec,
-                     poses: np.ndarray, reps: int) -> tuple[float, float]:
-    """Median wall seconds and median CPU seconds (every thread of this process) of one render call."""
+def _time_in_process(configs: Sequence[tuple[str, str | None, int | None]], world: Any, cam: CameraSpec,
+                     poses: np.ndarray, reps: int) -> list[tuple[float, float]]:
+    """Per configuration ``(backend, tracer, threads)``: median wall seconds and median CPU seconds
+    (every thread of this process) of one render call. The configurations take turns, one call
+    each per round, so that a change of load on a shared machine weighs on all of them alike."""
+    from contextlib import ExitStack
+
     from visfly_dist.scene_worker.render_base import Renderer, make_renderer
 
-    options = {"tracer": tracer} if tracer else {}
-    if backend == LEGACY_EGL:
-        from visfly_dist.scene_worker.render_egl_legacy import LegacyEglRenderer
+    with ExitStack() as stack:
+        renderers: list[Renderer] = []
+        for backend, tracer, threads in configs:
+            options = {"tracer": tracer} if tracer else {}
+            if backend == LEGACY_EGL:
+                from visfly_dist.scene_worker.render_egl_legacy import LegacyEglRenderer
 
-        renderer: Renderer = LegacyEglRenderer(world, [cam], drone_radius=DRONE_RADIUS)
-    else:
-        renderer = make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS, threads=threads, **options)
-    with renderer:
-        renderer.render(poses)
-        walls, cpus = [], []
-        for _ in range(reps):
-            c0, t0 = time.process_time(), time.perf_counter()
+                renderer: Renderer = LegacyEglRenderer(world, [cam], drone_radius=DRONE_RADIUS)
+            else:
+                renderer = make_renderer(backend, world, [cam], drone_radius=DRONE_RADIUS, threads=threads, **options)
+            renderers.append(stack.enter_context(renderer))
             renderer.render(poses)
-            walls.append(time.perf_counter() - t0)
-            cpus.append(time.process_time() - c0)
-    return float(np.median(walls)), float(np.median(cpus))
+        walls: list[list[float]] = [[] for _ in renderers]
+        cpus: list[list[float]] = [[] for _ in renderers]
+        for _ in range(reps):
+            for renderer, wall, cpu in zip(renderers, walls, cpus):
+                c0, t0 = time.process_time(), time.perf_counter()
+                renderer.render(poses)
+                wall.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
+    return [(float(np.median(w)), float(np.median(c))) for w, c in zip(walls, cpus)]
 
 
 def _check(backends: Sequence[str], res: Sequence[int], kinds: Sequence[str], cameras: int, reps: int,
