@@ -38,7 +38,9 @@ SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swrast", "software rasterizer")
 
 HEAP_KEPT_BYTES = 256 << 20
 """Freed heap memory glibc keeps for reuse on a CPU rasteriser (:func:`keep_freed_heap`)."""
-_M_TRIM_THRESHOLD = -1   # glibc's mallopt parameter
+HEAP_MMAP_BYTES = 32 << 20
+"""Blocks from this size up get their own mapping (glibc's ceiling for its own adaptive threshold)."""
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3   # glibc's mallopt parameters
 
 _lock = threading.Lock()
 _context: "EglContext | None" = None
@@ -199,12 +201,14 @@ def keep_freed_heap() -> bool:
     llvmpipe bins every frame's triangles in fresh heap blocks (about 15 MB for 100 cameras of 64x64)
     and frees them once it has rasterised; by default glibc hands that memory back to the kernel
     at once, so the next frame faults it in again, page by page: a fifth of the CPU time of a
-    render (kernel time), and lock contention between contexts drawing at once. Returns whether
-    the setting took (False off glibc).
+    render (kernel time), and lock contention between contexts drawing at once. Setting the trim
+    threshold turns glibc's adaptive mapping threshold off, so that one is set where the adaptive
+    one would end (:data:`HEAP_MMAP_BYTES`). Returns whether the settings took (False off glibc).
     """
     try:
         libc = ctypes.CDLL(None)
-        return bool(libc.mallopt(_M_TRIM_THRESHOLD, HEAP_KEPT_BYTES))
+        return bool(libc.mallopt(_M_TRIM_THRESHOLD, HEAP_KEPT_BYTES)) and bool(
+            libc.mallopt(_M_MMAP_THRESHOLD, HEAP_MMAP_BYTES))
     except (OSError, AttributeError):   # no mallopt: not glibc
         return False
 
