@@ -216,6 +216,6 @@ def test_the_generator_processes_exit_with_the_worker(worker_factory, sig):
         assert wait_for(lambda: bool(_generators(proc.pid)), timeout=30.0)
         children = _generators(proc.pid)
         os.kill(proc.pid, sig)
-        assert proc.wait(30.0) == (0 if sig == signal.SIGTERM else -signal.SIGKILL)
+        assert proc.wait(30.0) == (0 if sig == signal.SIGTERM else -signal.SIGKILL), proc.stderr_text()[-3000:]
         del pending
     assert wait_for(lambda: not any(_alive(c) for c in children), timeout=30.0), "orphaned generator processes"

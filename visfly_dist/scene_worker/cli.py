@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", choices=("auto", "egl", "raycast"), default="auto",
                         help="renderer: egl (OpenGL batch renderer over EGL), raycast (ray tracer), auto (per scene's cameras)")
     parser.add_argument("--threads", type=int, default=None,
-                        help="raycast tracing threads (default: the CPUs this process may use, at most 8)")
+                        help="raycast tracing threads, and the loads run at once before the first step, their "
+                             "generation in N-1 child processes (default: the CPUs this process may use, at most 8)")
     parser.add_argument("--worker-id", default=None, help="id in the run (default: <host>-<pid>)")
     parser.add_argument("--no-shm", action="store_true",
                         help="disable shared memory: Zenoh's, and image segments (images travel in the reply)")

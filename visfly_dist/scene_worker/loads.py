@@ -12,12 +12,14 @@ processes (:mod:`visfly_dist.scene_worker.generation`):
 - **Before the first step** (start-up, a replacement taking over): up to ``parallel`` loads at
   once, ``parallel`` being the worker's thread share (``--threads``) capped at
   :data:`MAX_PARALLEL_LOADS`. Once :data:`CHILDREN_AFTER` generated loads wait at once (a start-up
-  burst), ``parallel`` child processes start; while they import, and for loads that are not
-  generated, loads run one at a time as they always did. From when they are ready, a ``gen:``
-  source is generated in a child and its loader thread builds the rest from the scene it gets back.
+  burst), ``parallel - 1`` child processes start: with the worker's own process (whose loader
+  threads mostly take turns on the GIL) they fill its thread share. While they import, and for
+  loads that are not generated, loads run one at a time as they always did. From when they are
+  ready, a ``gen:`` source is generated in a child and its loader thread builds the rest from the
+  scene it gets back. A worker with one thread never starts children.
 - **Once steps are served** (swaps, rebalancing): one load at a time, in-thread, on a thread at
   :data:`BACKGROUND_LOAD_NICE`, so loads never take more from the steps than one niced thread; the
-  children exit (each holds about 100 MB) when the first step is served.
+  children exit (each holds about 120 MB) when the first step is served.
 - **Memory** (``--max-memory-mb``): a load starts beside others only while the worker's resident
   memory plus :data:`~visfly_dist.scene_worker.limits.LOAD_RESERVE_BYTES` per load running (this
   one included) stays within the bound; a load that would start alone only needs the worker under
@@ -51,8 +53,9 @@ Respond = Callable[[bool, bytes], None]
 MAX_PARALLEL_LOADS = 8
 """Most loads one worker runs at once, whatever its thread share."""
 CHILDREN_AFTER = 8
-"""Generated loads waiting at once that start the child processes. A child costs about a second of
-CPU to start and saves about 80 ms of the worker's CPU per garage: a burst pays, a single load not."""
+"""Generated loads waiting at once that start the child processes. A child costs one to two seconds
+of CPU to start and takes about 70 ms of the worker's own CPU per garage off it (160 -> 90 ms):
+a burst pays, a single load not."""
 BACKGROUND_LOAD_NICE = 10
 """Niceness of the thread that loads scenes once steps are served. Generating a scene takes a few
 hundred ms of CPU (a garage: about 0.3 s on a loaded host); at the same priority, swaps during
@@ -115,8 +118,9 @@ class SceneLoader:
         self._waiting.append(job)
         if (self._children is None and not self._stepping and self.parallel > 1
                 and sum(is_generated(j.request.source) for j in self._waiting) >= CHILDREN_AFTER):
-            log.info("%d generated loads wait: starting %d scene generator processes", len(self._waiting), self.parallel)
-            self._children = GeneratorProcesses(self.parallel)
+            log.info("%d generated loads wait: starting %d scene generator processes", len(self._waiting),
+                     self.parallel - 1)
+            self._children = GeneratorProcesses(self.parallel - 1)
 
     def next_job(self, used_bytes: int | None, bound_bytes: int) -> LoadJob | None:
         """The waiting load that may start now (taken off the queue), or None while it must wait.

@@ -254,9 +254,10 @@ class SceneWorker:
                 item = self._inbox.get_nowait()
             except queue.Empty:
                 break
-            if isinstance(item, LoadJob):  # already answered above; free what it built
-                if item.future is not None and item.future.done() and item.future.exception() is None:
-                    item.future.result().discard()
+            if isinstance(item, LoadJob):  # already answered above; free what it built (a cancelled one built nothing)
+                future = item.future
+                if future is not None and future.done() and not future.cancelled() and future.exception() is None:
+                    future.result().discard()
             else:
                 self._send(item, False, shutting_down)
         self._scenes.close()
@@ -401,8 +402,8 @@ class SceneWorker:
     def _install(self, job: LoadJob) -> None:
         request = job.request
         assert job.future is not None and job.future.done()
-        if not self._scenes.end_load(request.scene_key, job):  # unloaded while loading
-            if job.future.exception() is None:
+        if not self._scenes.end_load(request.scene_key, job):  # unloaded while loading (or the worker closed)
+            if not job.future.cancelled() and job.future.exception() is None:
                 job.future.result().discard()
             return
         if job.child_s is not None:
