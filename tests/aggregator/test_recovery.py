@@ -38,6 +38,8 @@ def _served(agg) -> dict[str, list[str]]:
     for s in agg.table.slots:
         if s.worker is not None:
             out.setdefault(s.worker, []).append(s.key)
+        if s.incoming is not None:  # a swap armed: next episodes start there
+            out.setdefault(s.incoming.move.worker, []).append(s.incoming.move.key)
     return {w: sorted(k) for w, k in out.items()}
 
 

@@ -1,4 +1,4 @@
-"""Spawn sampling is deterministic for a seed; scenes swap after ``swap_every_resets`` resets."""
+"""Spawn sampling is deterministic for a seed; scenes swap after ``swap_every_resets`` resets, each\nagent moving into the new scene at its own episode end."""
 
 from __future__ import annotations
 
@@ -38,19 +38,19 @@ def test_same_seed_same_spawns(pair):
     assert not np.array_equal(_spawn(a, [0, 1, 2, 3]), first[:4])  # the generator moves on
 
 
-def _step_until_switched(agg, poses, timeout=60.0):
-    """Steps go on while the next scene loads; the swap shows once it is ready."""
+def _step_until_armed(agg, poses, timeout=60.0):
+    """Steps go on while the next scene loads; ``take_next_scene`` reports its agents once it is ready."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         obs = agg.observe(poses)
-        switched = agg.take_switched()
-        if switched.any():
-            return obs, switched
+        armed = agg.take_next_scene()
+        if armed.any():
+            return obs, armed
         time.sleep(0.05)
     raise AssertionError("no scene swap within the timeout")
 
 
-def test_swap_after_enough_resets_happens_in_the_background(pair):
+def test_a_swap_loads_in_the_background_and_takes_over_at_each_agents_episode_end(pair):
     agg = pair[0]
     before = [agg.slot_source(s) for s in range(2)]
     poses = np.zeros((4, 7))
@@ -58,16 +58,27 @@ def test_swap_after_enough_resets_happens_in_the_background(pair):
     poses[:, 3] = 1.0
     agg.note_resets(np.array([0, 1]))                         # slot 0: 2 resets
     agg.note_resets(np.array([2]))                            # slot 1: 1 reset
-    assert not agg.observe(poses).lost.any() and not agg.take_switched().any()
+    assert not agg.observe(poses).lost.any() and not agg.take_next_scene().any()
     agg.note_resets(np.array([0, 3]))                         # slot 0: 3 -> swap; slot 1: 2
-    assert agg.slot_source(0) == before[0]                    # still flying in the old scene
-    obs, switched = _step_until_switched(agg, poses)
+    obs, armed = _step_until_armed(agg, poses)
     assert not obs.lost.any()
-    assert switched.tolist() == [True, True, False, False]
-    assert agg.slot_source(0) != before[0] and agg.slot_source(1) == before[1]
+    assert armed.tolist() == [True, True, False, False]       # their next starts belong in the new scene
+    assert agg.agent_sources() == [before[0]] * 2 + [before[1]] * 2  # nobody's running episode moved
+    new = agg.table.slots[0].incoming.move.source
+    assert new != before[0]
+    next_starts = _spawn(agg, [0, 1])                         # drawn from the new scene's pool
+    assert agg.note_resets(np.array([0])).tolist() == [0]     # agent 0's episode ends: it moves
+    assert agg.agent_sources() == [new, before[0], before[1], before[1]] and agg.slot_source(0) == before[0]
+    poses[0, :3] = next_starts[0]
+    obs = agg.observe(poses)                                  # one slot, two scenes, one request
+    assert not obs.lost.any() and not obs.collision[0]
+    assert agg.note_resets(np.array([1])).tolist() == [1]     # the last one: slot 0 switches
+    assert agg.slot_source(0) == new and agg.agent_sources()[:2] == [new, new]
+    assert not agg.take_switched().any()                      # no running episode changed scene
     agg.note_resets(np.array([2]))                            # slot 1: 3 -> swap
-    _, switched = _step_until_switched(agg, poses)
-    assert switched.tolist() == [False, False, True, True]
+    _, armed = _step_until_armed(agg, poses)
+    assert armed.tolist() == [False, False, True, True]
+    agg.note_resets(np.array([2, 3]))                         # both end together: switched at once
     assert agg.slot_source(1) not in before
     poses[:, :3] = _spawn(agg, [0, 1, 2, 3])                  # pools of the new scenes were fetched before the switch
     obs = agg.observe(poses)

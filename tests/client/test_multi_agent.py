@@ -64,7 +64,7 @@ def test_one_member_done_truncates_the_team(env):
     assert obs["step"][2:, 0].tolist() == [0, 0] and obs["step"][:2, 0].tolist() == [1, 1]
 
 
-def test_scene_swap_truncates_the_agents_of_the_swapped_scene():
+def test_a_scene_swap_takes_over_at_each_agents_episode_end_and_cuts_no_episode():
     env = CounterTask(CounterConfig(num_envs=4, agents_per_scene=2, swap_every_resets=1, max_episode_steps=500,
                                     pool=small_pool()))
     with env:
@@ -74,14 +74,21 @@ def test_scene_swap_truncates_the_agents_of_the_swapped_scene():
         env.force_success[0] = True
         _, _, done, infos = env.step(hover(env))
         env.force_success[:] = False
-        assert done.tolist() == [True, False, False, False]
-        assert infos[0]["is_success"] is True  # agent 0 succeeded; the next scene of slot 0 loads meanwhile
-        for _ in range(400):  # steps go on in the old scene until the new one is ready
-            obs, _, done, infos = env.step(hover(env))
-            if done.any():
+        assert done.tolist() == [True, False, False, False]  # agent 0 succeeded; slot 0's next scene loads meanwhile
+        for _ in range(400):  # steps go on in the old scene; the new one is armed once loaded
+            _, _, done, infos = env.step(hover(env))
+            assert not done.any() and not any(info.get("swapped") for info in infos)
+            if env.aggregator.table.slots[0].incoming is not None:
                 break
-        assert done.tolist() == [True, True, False, False]
-        assert infos[0]["TimeLimit.truncated"] is True and infos[1]["TimeLimit.truncated"] is True
-        assert infos[0]["swapped"] is True and infos[1]["swapped"] is True
-        assert env.aggregator.slot_source(0) != sources[0] and env.aggregator.slot_source(1) == sources[1]
-        assert obs["step"][:2, 0].tolist() == [0, 0] and obs["step"][2:, 0].min() > 1
+        new = env.aggregator.table.slots[0].incoming.move.source
+        for agent in (1, 0):  # each moves at its own episode end
+            env.force_success[agent] = True
+            obs, _, done, infos = env.step(hover(env))
+            env.force_success[:] = False
+            assert done.tolist() == [i == agent for i in range(4)] and infos[agent]["is_success"] is True
+            assert env.aggregator.agent_sources()[agent] == new and obs["step"][agent, 0] == 0
+            lo, hi = env.aggregator.table.slots[0].incoming.bounds if agent == 1 else env.aggregator.table.slots[0].bounds
+            assert (env.bounds[agent].numpy() == np.stack([lo, hi]).astype(np.float32)).all()
+        assert env.aggregator.slot_source(0) == new and env.aggregator.slot_source(1) == sources[1]
+        assert env.aggregator.agent_sources() == [new, new, sources[1], sources[1]]
+        assert obs["step"][2:, 0].min() > 1  # slot 1's episodes ran on

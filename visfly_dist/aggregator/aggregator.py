@@ -261,9 +261,26 @@ class Aggregator:
         return self.table.slots[slot].source
 
     def agent_bounds(self) -> np.ndarray:
-        """``(N, 2, 3)`` float64 flight box of each agent's scene."""
-        bounds = np.stack([s.bounds for s in self.table.slots]).astype(np.float64)
-        return bounds[self.agent_scene]
+        """``(N, 2, 3)`` float64 flight box of the scene of each agent's running episode."""
+        bounds = np.stack([s.bounds for s in self.table.slots]).astype(np.float64)[self.agent_scene]
+        for agent in np.flatnonzero(self.table.in_incoming).tolist():
+            bounds[agent] = self.table.scene_of(agent)[3]
+        return bounds
+
+    def agent_metadata(self, agent: int) -> dict[str, Any]:
+        """:meth:`scene_metadata` of the scene agent ``agent``'s running episode is in (while a swap
+        takes its slot over, the old or the incoming one)."""
+        _, _, source, _, metadata = self.table.scene_of(agent)
+        meta = dict(metadata)
+        meta.setdefault("source", source)
+        return meta
+
+    def agent_sources(self) -> list[str]:
+        """The source of the scene of each agent's running episode."""
+        sources = [self.table.slots[slot].source for slot in self.agent_scene.tolist()]
+        for agent in np.flatnonzero(self.table.in_incoming).tolist():
+            sources[agent] = self.table.scene_of(agent)[2]
+        return sources
 
     def scene_metadata(self, slot: int) -> dict[str, Any]:
         """The metadata the worker reported for ``slot``'s scene, plus its ``source``."""
@@ -329,7 +346,7 @@ class Aggregator:
         spawn_rows = self._pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents)
         self._maintain()
         obs_plan = self._plans.get(agents)
-        spawn_plan = plan_entries(self.table, spawn_agents)
+        spawn_plan = plan_entries(self.table, spawn_agents, next_episode=True)
         workers = sorted(set(obs_plan) | set(spawn_plan))
         segments, step = self._images, self._step_images(workers, agents, spawn_agents)
         ticket = StepTicket(agents, spawn_agents, _observation(self.cameras, len(agents), None if step is None else step.obs),
@@ -467,8 +484,8 @@ class Aggregator:
         self._require_started()
         agents = self._agent_index(agents)
         spec = spawn_spec(distribution, a, b, clearance)
-        slots = sorted({int(s) for s in self.agent_scene[agents]})
-        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]
+        slots = sorted({int(s) for s in self.agent_scene[agents]})  # each agent's next episode starts in its slot's
+        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]  # next scene (an armed swap's)
         if missing:
             self._fetch_spawn_pools_now(missing, spec)
         draws = self._streams.draw(agents)
@@ -488,14 +505,22 @@ class Aggregator:
         self._streams.reseed(self._agent_index(agents), seeds)
 
     def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
-        return PoolKey(slot, self.table.slots[slot].source, spec)
+        """The pool that next episodes in ``slot`` start from: its armed swap's scene, else its own."""
+        return PoolKey(slot, self._next_scene(slot)[2], spec)
+
+    def _next_scene(self, slot: int) -> tuple[str | None, str, str]:
+        """``(worker, key, source)`` of the scene next episodes in ``slot`` start in."""
+        s = self.table.slots[slot]
+        if s.incoming is not None:
+            return s.incoming.move.worker, s.incoming.move.key, s.incoming.move.source
+        return s.worker, s.key, s.source
 
     def _keep_fresh(self, key: PoolKey) -> None:
         """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn."""
         in_flight = [j.pending for j in self._background if isinstance(j, SpawnJob) and j.key == key]
-        s = self.table.slots[key.slot]
-        if self._spawns.wants_refresh(key, bool(in_flight)) and s.worker is not None:
-            self._background.append(self._spawns.fetch(key, s.worker, s.key, refresh=True))
+        worker, scene_key, _ = self._next_scene(key.slot)
+        if self._spawns.wants_refresh(key, bool(in_flight)) and worker is not None:
+            self._background.append(self._spawns.fetch(key, worker, scene_key, refresh=True))
         elif self._spawns.used_up(key):
             if in_flight:  # bounded wait, so the same seed gives the same positions
                 self._pool.wait_any([in_flight], self.pool_config.step_timeout_s)
@@ -505,8 +530,9 @@ class Aggregator:
     def _fetch_spawn_pools_now(self, slots: list[int], spec: SpawnSpec) -> None:
         """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""
         for _ in range(3):
-            jobs = [self._spawns.fetch(self._pool_key(s, spec), worker, self.table.slots[s].key)
-                    for s in slots if (worker := self.table.slots[s].worker) is not None]
+            scenes = {s: self._next_scene(s) for s in slots}
+            jobs = [self._spawns.fetch(self._pool_key(s, spec), worker, key)
+                    for s, (worker, key, _) in scenes.items() if worker is not None]
             self._background.extend(jobs)
             self._pool.gather([j.pending for j in jobs])
             self._apply_background()
@@ -518,23 +544,35 @@ class Aggregator:
 
     # ----- scene swaps -----------------------------------------------------------------------
 
-    def note_resets(self, agents: np.ndarray) -> None:
-        """Count episode resets per slot; start loading the next scene of slots due for a swap.
+    def note_resets(self, agents: np.ndarray, count: bool = True) -> np.ndarray:
+        """Agents ``agents`` start new episodes (call before they start): with ``count`` (their
+        episodes ended; not for a reset asked for), count resets per slot and start loading the next
+        scene of slots due for a swap. Returns the agents whose new episode is in a swapped-in scene
+        (their bounds and metadata changed).
 
-        The swap happens in the background: :meth:`take_switched` reports the agents whose scene
-        changed once the new scene (and its spawn pools) are ready.
+        A swap loads in the background; once its scene and spawn pools are ready it is armed
+        (:meth:`take_next_scene` reports the agents whose next start must be drawn there) and each
+        agent moves into it at its next episode end: no running episode changes scene.
         """
         self._require_started()
         agents = self._agent_index(agents)
+        moved = self._moves.take_over(agents)
         every = self.scene_config.swap_every_resets
-        if every == 0 or len(agents) == 0:
-            return
+        if every == 0 or len(agents) == 0 or not count:
+            return moved
         counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
         gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
         self._background.extend(self._moves.start_swaps(counts, every, gens))
+        return moved
+
+    def take_next_scene(self) -> np.ndarray:
+        """``(N,)`` bool: agents whose next episode starts in a newly armed swap (draw their next
+        start again) since the last call."""
+        return self._moves.take_next_scene()
 
     def take_switched(self) -> np.ndarray:
-        """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
+        """``(N,)`` bool: agents whose scene changed under their running episode since the last call
+        (a worker lost while its slot's agents were taking a swap over; the env cuts those episodes)."""
         return self._moves.take_switched()
 
     # ----- failure policy --------------------------------------------------------------------

@@ -6,8 +6,10 @@ follows from them, between steps and never inside one:
 - **loads**: one ``load_scene`` request per move, under the move's fresh key, while the old key
   keeps serving (:meth:`SceneMoves.send_loads`);
 - **switches**: a loaded swap first waits for its new scene's spawn pools (a
-  :class:`PendingSwitch`), so resets never wait for them; then the slot switches
-  (:meth:`SceneMoves.switch`, the one place a slot changes scene);
+  :class:`PendingSwitch`), so resets never wait for them; then it is armed and the slot's agents
+  take it over at their episode ends (:meth:`SceneMoves.take_over`); the slot switches
+  (:meth:`SceneMoves.switch`, the one place a slot changes scene) when the last has moved, so no
+  running episode changes scene;
 - **unloads**: the old key is unloaded :data:`UNLOAD_DELAY_COLLECTS` collects after the switch,
   when no request in flight can still name it;
 - **stale scenes**: keys a worker may still hold but no longer serves (its slots were orphaned, a
@@ -121,7 +123,8 @@ class SceneMoves:
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
         self._switches: dict[int, PendingSwitch] = {}  # slot -> its loaded swap, waiting for spawn pools
-        self._switched = np.zeros(len(table.agent_scene), dtype=bool)
+        self._switched = np.zeros(len(table.agent_scene), dtype=bool)  # scene changed under a running episode
+        self._next_scene = np.zeros(len(table.agent_scene), dtype=bool)  # next episode starts in an armed swap
 
     # ----- loads and switches ----------------------------------------------------------------
 
@@ -183,18 +186,42 @@ class SceneMoves:
         return bool(self._switches)
 
     def switch(self, slot: int, move: Move, bounds: Any, metadata: dict[str, Any]) -> None:
-        """``slot`` now serves ``move``'s scene (placed, rebalanced or swapped in: the one place a slot
-        changes scene); its old key is unloaded a little later."""
+        """``move`` of ``slot`` is ready. A placed or rebalanced scene (the same source) serves at
+        once; a swapped-in one is armed: the slot's agents take it over at their episode ends."""
+        if move.reason == "swap":
+            self._table.arm(slot, move, bounds, metadata)
+            self._next_scene[self._table.agents_of(slot)] = True
+            return
+        self._finish(slot, move, bounds, metadata)
+
+    def take_over(self, agents: np.ndarray) -> np.ndarray:
+        """Agents ``agents`` ended their episodes: those of armed slots move into the incoming
+        scene (returned); a slot whose agents have all moved switches to it."""
+        moved, complete = self._table.take_over(agents)
+        for slot in complete:
+            incoming = self._table.slots[slot].incoming
+            assert incoming is not None
+            self._finish(slot, incoming.move, incoming.bounds, incoming.metadata)
+            log.info("run %s: slot %d now holds %s", self._run_id, slot, incoming.move.source)
+        return moved
+
+    def _finish(self, slot: int, move: Move, bounds: Any, metadata: dict[str, Any]) -> None:
+        """``slot`` now serves ``move``'s scene (the one place a slot changes scene); its old key is
+        unloaded a little later."""
         old_worker, old_key = self._table.finish_move(slot, move, bounds, metadata)
         if old_worker is not None and old_key != move.key:
             self._unloads.append((self._collects + UNLOAD_DELAY_COLLECTS, old_worker, old_key))
-        if move.reason == "swap":
-            self._switched[self._table.agents_of(slot)] = True
-            log.info("run %s: slot %d now holds %s", self._run_id, slot, move.source)
 
     def take_switched(self) -> np.ndarray:
-        """``(N,)`` bool: agents whose scene was swapped for another since the last call."""
+        """``(N,)`` bool: agents whose scene changed under their running episode since the last call
+        (only a worker lost while its slot's agents were taking a swap over does that)."""
         out, self._switched = self._switched, np.zeros_like(self._switched)
+        return out
+
+    def take_next_scene(self) -> np.ndarray:
+        """``(N,)`` bool: agents whose next episode will start in a newly armed swap (their next start
+        must be drawn there) since the last call."""
+        out, self._next_scene = self._next_scene, np.zeros_like(self._next_scene)
         return out
 
     # ----- unloads and stale scenes ----------------------------------------------------------
@@ -229,6 +256,9 @@ class SceneMoves:
         for slot in self._table.slots:
             if slot.worker == worker:
                 self.mark_stale(worker, slot.key)
+            if slot.incoming is not None and slot.incoming.move.worker == worker:
+                self.mark_stale(worker, slot.incoming.move.key)
+        self._switched |= self._table.cut_by_orphaning(worker)
         for index in self._table.orphan_worker(worker):
             log.warning("run %s: slot %d left worker %s (%s)", self._run_id, index, worker, reason)
 

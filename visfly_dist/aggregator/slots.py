@@ -4,12 +4,17 @@ Agents are grouped in slots: agent ``i`` flies in slot ``i // agents_per_scene``
 scene source, served by one worker under one scene key. Moving a slot (to place an orphan, to
 rebalance, or to swap its scene for the next source of the dataset) is a *move*: the new scene is
 loaded under a fresh key while the old one keeps serving, and the slot switches when the load has
-answered.
+answered. A swap does not switch its slot under running episodes: once loaded it is *armed*
+(:meth:`SlotTable.arm`, the slot's ``incoming`` scene), each agent takes it over when its episode
+ends (:meth:`SlotTable.take_over`: its next episode starts there), and the slot switches when the
+last of its agents has moved. Meanwhile the slot serves two scenes: each agent's running episode
+in its own (:meth:`SlotTable.in_incoming`), and every agent's next start in the incoming one.
 
 Plans are values: ``plan_*`` look at the table and change nothing. Only the table writes into its
 slots, when told what happened: :meth:`SlotTable.start_move` (the load was sent),
 :meth:`SlotTable.finish_move` / :meth:`SlotTable.fail_move` (it answered),
-:meth:`SlotTable.orphan_worker`, :meth:`SlotTable.set_source` and :meth:`SlotTable.note_resets`.
+:meth:`SlotTable.orphan_worker`, :meth:`SlotTable.set_source`, :meth:`SlotTable.note_resets`,
+:meth:`SlotTable.arm` and :meth:`SlotTable.take_over`.
 :mod:`.scene_moves` carries the plans out.
 
 Invariants:
@@ -39,6 +44,15 @@ class Move:
 
 
 @dataclass
+class Incoming:
+    """A swap's scene, loaded with its spawn pools: the slot's agents take it over at their episode ends."""
+
+    move: Move
+    bounds: np.ndarray
+    metadata: dict[str, Any]
+
+
+@dataclass
 class Slot:
     """One scene slot; ``worker`` is ``None`` while it is an orphan."""
 
@@ -52,6 +66,7 @@ class Slot:
     resets: int = 0
     version: int = 0
     move: Move | None = None
+    incoming: Incoming | None = None  # an armed swap (its ``move`` is the slot's move in flight)
 
 
 class SlotTable:
@@ -62,6 +77,8 @@ class SlotTable:
         self.slots = [Slot(i, source, f"s{i}v0") for i, source in enumerate(sources)]
         self.agent_scene = np.arange(len(self.slots) * self.agents_per_scene, dtype=np.int64) // self.agents_per_scene
         self.revision = 0  # bumped whenever a slot's worker or key changes or a move ends: plans over the table are stale
+        self.armed = np.zeros(len(self.slots), dtype=bool)  # per slot: an incoming scene is armed
+        self.in_incoming = np.zeros(len(self.agent_scene), dtype=bool)  # per agent: its episode runs in the incoming scene
 
     def __len__(self) -> int:
         return len(self.slots)
@@ -85,9 +102,16 @@ class SlotTable:
         return loads
 
     def orphan_worker(self, worker_id: str) -> list[int]:
-        """Forget ``worker_id``: its slots become orphans, moves towards it are cancelled."""
+        """Forget ``worker_id``: its slots become orphans, moves towards it are cancelled. An armed
+        swap there is dropped; if some agents already fly in it, the slot is placed again with its
+        source (the others' episodes change scene: :meth:`cut_by_orphaning` says whose)."""
         lost = []
         for s in self.slots:
+            if s.incoming is not None and s.incoming.move.worker == worker_id:
+                agents = self.agents_of(s.index)
+                if self.in_incoming[agents].any():
+                    s.source = s.incoming.move.source
+                self._disarm(s)
             if s.worker == worker_id:
                 s.worker = None
                 lost.append(s.index)
@@ -138,6 +162,54 @@ class SlotTable:
             return None
         return self._move(s, s.worker, source, "swap", generations)
 
+    def cut_by_orphaning(self, worker_id: str) -> np.ndarray:
+        """Agents whose running episode would change scene if ``worker_id`` were orphaned now: those
+        not yet moved into an armed swap there that some of their slot's agents already fly in."""
+        out = np.zeros(len(self.agent_scene), dtype=bool)
+        for s in self.slots:
+            if s.incoming is not None and s.incoming.move.worker == worker_id:
+                agents = self.agents_of(s.index)
+                moved = self.in_incoming[agents]
+                if moved.any():
+                    out[agents[~moved]] = True
+        return out
+
+    def arm(self, slot: int, move: Move, bounds: np.ndarray, metadata: dict[str, Any]) -> None:
+        """``slot``'s swap ``move`` is loaded and its spawn pools are in: its agents take it over at
+        their episode ends (:meth:`take_over`)."""
+        s = self.slots[slot]
+        s.incoming = Incoming(move, np.asarray(bounds, dtype=np.float64).reshape(2, 3), dict(metadata))
+        self.armed[slot] = True
+        self.revision += 1
+
+    def take_over(self, agents: np.ndarray) -> tuple[np.ndarray, list[int]]:
+        """Agents ``agents`` ended their episodes: those of armed slots start the next one in the
+        incoming scene. Returns the agents that moved and the slots all of whose agents have moved
+        (to :meth:`finish_move` with the incoming scene)."""
+        slot_of = self.agent_scene[agents]
+        moving = agents[self.armed[slot_of] & ~self.in_incoming[agents]]
+        if not len(moving):
+            return moving, []
+        self.in_incoming[moving] = True
+        self.revision += 1
+        slots = np.unique(self.agent_scene[moving]).tolist()
+        return moving, [s for s in slots if self.in_incoming[self.agents_of(s)].all()]
+
+    def _disarm(self, s: Slot) -> None:
+        s.incoming = None
+        self.armed[s.index] = False
+        self.in_incoming[self.agents_of(s.index)] = False
+        self.revision += 1
+
+    def scene_of(self, agent: int, next_episode: bool = False) -> tuple[str | None, str, str, np.ndarray, dict[str, Any]]:
+        """``(worker, key, source, bounds, metadata)`` of the scene agent ``agent`` flies in (its
+        running episode), or, with ``next_episode``, where its next episode starts."""
+        s = self.slots[int(self.agent_scene[agent])]
+        if s.incoming is not None and (next_episode or self.in_incoming[agent]):
+            m = s.incoming.move
+            return m.worker, m.key, m.source, s.incoming.bounds, s.incoming.metadata
+        return s.worker, s.key, s.source, s.bounds, s.metadata
+
     def _move(self, slot: Slot, worker: str, source: str, reason: str, generations: dict[str, int]) -> Move:
         return Move(worker, f"s{slot.index}v{slot.version + 1}", source, reason, generations.get(worker, 0))
 
@@ -170,6 +242,8 @@ class SlotTable:
         s.bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
         s.metadata = dict(metadata)
         s.move = None
+        if s.incoming is not None:
+            self._disarm(s)
         self.revision += 1
         return old
 

@@ -1,7 +1,9 @@
 """Step plans: which scene entries, and which agents' rows, each worker's request of a step holds.
 
 A step sends one request per worker: the scene keys it serves for the agents stepped, an agent
-count per key, and those agents' poses in request order (grouped by slot). The plan depends only
+count per key, and those agents' poses in request order (grouped by slot; while a swap takes a slot
+over, its agents in the old and in the incoming scene are entries of their own, each a run of
+consecutive rows, so that images can be written in place). The plan depends only
 on the agents and on the slot table, so :class:`StepPlans` keeps it while the table's revision is
 unchanged: a training loop steps the same agents (all, or each of its groups) on the same workers
 every time.
@@ -32,20 +34,27 @@ class WorkerEntries:
     starts: list[int] = field(default_factory=list)    # each entry's first row
 
 
-def plan_entries(table: SlotTable, agents: np.ndarray) -> dict[str, WorkerEntries]:
-    """Per worker, the entries of ``agents`` (rows index ``agents``); agents of orphan slots are left out."""
+def plan_entries(table: SlotTable, agents: np.ndarray, next_episode: bool = False) -> dict[str, WorkerEntries]:
+    """Per worker, the entries of ``agents`` (rows index ``agents``) in the scenes of their running
+    episodes, or with ``next_episode`` where their next episodes start; agents of orphan slots are
+    left out."""
     if len(agents) == 0:
         return {}
     slot_of = table.agent_scene[agents]
     order = np.argsort(slot_of, kind="stable")
-    slots, starts, counts = np.unique(slot_of[order], return_index=True, return_counts=True)
+    incoming = table.in_incoming[agents] | table.armed[slot_of] if next_episode else table.in_incoming[agents]
+    code = slot_of[order] * 2 + incoming[order]
+    starts = np.flatnonzero(np.r_[True, code[1:] != code[:-1]])
+    counts = np.diff(np.r_[starts, len(code)])
     out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int]]] = {}
-    for slot, start, count in zip(slots.tolist(), starts.tolist(), counts.tolist()):
+    for start, count in zip(starts.tolist(), counts.tolist()):
+        slot, new = divmod(int(code[start]), 2)
         s = table.slots[slot]
-        if s.worker is None:
+        worker, key = (s.incoming.move.worker, s.incoming.move.key) if new and s.incoming is not None else (s.worker, s.key)
+        if worker is None:
             continue
-        keys, cnts, parts, served = out.setdefault(s.worker, ([], [], [], []))
-        keys.append(s.key)
+        keys, cnts, parts, served = out.setdefault(worker, ([], [], [], []))
+        keys.append(key)
         cnts.append(count)
         parts.append(order[start:start + count])
         served.append(slot)

@@ -167,7 +167,8 @@ class TensorEnv:
         self._next_pos = torch.zeros(n, 3, device=self.device)
         self._prepared = np.zeros(n, dtype=bool)
         self._prepared_obs = empty_observation(self.aggregator.cameras, n)
-        self._switched = np.zeros(n, dtype=bool)  # scene swapped, not yet reported
+        self._switched = np.zeros(n, dtype=bool)  # scene changed mid-episode, not yet taken in
+        self._next_scene = np.zeros(n, dtype=bool)  # next episode in a new scene, start not yet redrawn
         self._in_flight: list[_InFlight] = []
         self.step_mask = torch.ones(n, dtype=torch.bool, device=self.device)
         self.agents_per_scene = config.agents_per_scene
@@ -267,7 +268,7 @@ class TensorEnv:
 
     def scene_metadata(self, agent: int) -> dict[str, Any]:
         """Metadata of the scene agent ``agent`` flies in (goal regions and the like)."""
-        return self.aggregator.scene_metadata(int(self.agent_scene[agent]))
+        return self.aggregator.agent_metadata(int(agent))
 
     # ----- core step ----------------------------------------------------------------------------
 
@@ -373,8 +374,7 @@ class TensorEnv:
                 "episode_length": self.episode_step}
         done = terminated | truncated
         if bool(done.any()):
-            self.aggregator.note_resets(done.nonzero().squeeze(1).cpu().numpy())
-            observation = self._reset_agents(done, observation)
+            observation = self._reset_agents(done, observation, ended=True)
         self.step_timings = {**self.frame_timings, "physics_s": flight.physics_s,
                              "observe_s": self.frame_timings.get("total_s", t1 - t0),
                              "total_s": time.perf_counter() - flight.started}
@@ -454,8 +454,15 @@ class TensorEnv:
                           rows(result.terminated), rows(result.truncated), pick), ids
 
     def _take_swapped(self, members: np.ndarray) -> torch.Tensor | None:
-        """``(N,)`` bool: agents of ``members`` whose scene was swapped (None if none); they start
-        their next episode in the new scene."""
+        """``(N,)`` bool: agents of ``members`` whose scene changed under their episode (None if
+        none; a swap takes over at episode ends, so only a worker lost mid-swap does that); they
+        start their next episode in the new scene. Agents of ``members`` whose next episode will
+        be in a swapped-in scene get their next start drawn there."""
+        self._next_scene |= self.aggregator.take_next_scene()
+        redraw = self._next_scene & members
+        if redraw.any():
+            self._next_scene &= ~members
+            self._draw_next_starts(torch.as_tensor(np.flatnonzero(redraw), device=self.device))
         self._switched |= self.aggregator.take_switched()
         swapped = self._switched & members
         if not swapped.any():
@@ -506,11 +513,20 @@ class TensorEnv:
             obs = {**obs, "state": self._state_noise(obs["state"], self.generator)}
         return obs
 
-    def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None) -> dict[str, torch.Tensor]:
+    def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None,
+                      ended: bool = False) -> dict[str, torch.Tensor]:
         """Reset the agents in ``mask`` to their drawn next start; return ``observation`` with their
-        rows replaced by the first view of their new episode (rendered ahead, or now if it is not)."""
+        rows replaced by the first view of their new episode (rendered ahead, or now if it is not).
+        ``ended``: their episodes ended (they count towards scene swaps; a reset asked for does not)."""
         idx = mask.nonzero().squeeze(1)
         idx_np = idx.cpu().numpy()
+        self._next_scene |= self.aggregator.take_next_scene()
+        if self._next_scene[idx_np].any():  # a swap armed since their next start was drawn: draw it there
+            redraw = idx_np[self._next_scene[idx_np]]
+            self._next_scene[redraw] = False
+            self._draw_next_starts(torch.as_tensor(redraw, device=self.device))
+        if len(self.aggregator.note_resets(idx_np, count=ended)):  # some start this episode in a swapped-in scene
+            self.bounds = self._agent_bounds()
         fresh = self.quad.initial_state(self._next_pos)
         self.state = QuadState.where(mask, fresh, self.state)
         self.episode_step = torch.where(mask, 0, self.episode_step)

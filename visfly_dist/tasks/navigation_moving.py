@@ -86,7 +86,7 @@ class MovingNavigationEnv(NavigationEnv):
     config: MovingNavigationConfig
 
     def __init__(self, config: MovingNavigationConfig | None = None) -> None:
-        self._motions: dict[tuple[int, str], list[tuple[Motion, float]]] = {}
+        self._motions: dict[str, list[tuple[Motion, float]]] = {}  # per scene source
         super().__init__(config)
 
     def observation_space_dict(self) -> dict[str, spaces.Space]:
@@ -97,10 +97,11 @@ class MovingNavigationEnv(NavigationEnv):
     def get_observation(self) -> dict[str, torch.Tensor]:
         return {**super().get_observation(), "moving": self.moving_observation()}
 
-    def scene_motions(self, slot: int) -> list[tuple[Motion, float]]:
-        """The moving obstacles of scene slot ``slot``: ``(motion, bounding radius)`` from its metadata."""
-        meta = self.aggregator.scene_metadata(slot)
-        key = (slot, str(meta.get("source")))
+    def scene_motions(self, agent: int) -> list[tuple[Motion, float]]:
+        """The moving obstacles of the scene agent ``agent`` flies in: ``(motion, bounding radius)``
+        from its metadata."""
+        meta = self.aggregator.agent_metadata(agent)
+        key = str(meta.get("source"))
         if key not in self._motions:
             self._motions[key] = [(motion_from_dict(m["motion"], f"moving_objects[{i}].motion"), float(m["radius"]))
                                   for i, m in enumerate(meta.get(MOVING_KEY, []))]
@@ -108,14 +109,15 @@ class MovingNavigationEnv(NavigationEnv):
 
     def moving_states(self) -> MovingStates:
         """Every agent's scene's moving obstacles at ``sim_time``, padded to the most any scene has."""
-        slots = self.agent_scene.cpu().numpy()
-        per_slot = {int(s): self.scene_motions(int(s)) for s in np.unique(slots)}
-        m = max(1, max(len(v) for v in per_slot.values()))
+        # agents of one slot may fly in two scenes while a swap takes over at their episode ends
+        _, first, scene_of = np.unique(self.aggregator.agent_sources(), return_index=True, return_inverse=True)
+        per_scene = [self.scene_motions(int(agent)) for agent in first]
+        m = max(1, max(len(v) for v in per_scene))
         n = self.num_envs
         pos, vel, acc = np.zeros((n, m, 3)), np.zeros((n, m, 3)), np.zeros((n, m, 3))
         radius, valid = np.zeros((n, m)), np.zeros((n, m), bool)
-        for slot, motions in per_slot.items():
-            rows = slots == slot
+        for scene, motions in enumerate(per_scene):
+            rows = scene_of == scene
             for k, (motion, r) in enumerate(motions):
                 st = motion.state(self.sim_time)
                 pos[rows, k], vel[rows, k], acc[rows, k] = st.position, st.velocity, st.acceleration

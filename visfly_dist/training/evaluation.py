@@ -161,10 +161,6 @@ def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[Any
     return model, env
 
 
-def _slot_sources(base: Any) -> list[str]:
-    return [base.aggregator.slot_source(s) for s in range(base.aggregator.num_scenes)]
-
-
 def _episode(members: list[int], infos: list[dict[str, Any]], scene: str, team: int, limit: int) -> Episode:
     """The counted episode of the agents ``members`` (one agent, or the members of a team that ended)."""
     lengths = [int(infos[i]["episode"]["l"]) for i in members]
@@ -208,8 +204,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     while len(log) < episodes:
         if filming:
             recorder.add(obs, f"step {step}  return {ret:.2f}")
-        sources = _slot_sources(base)
-        agent_scene = np.asarray(base.agent_scene.cpu())
+        sources = base.aggregator.agent_sources()  # the scene of each agent's running episode
         if recurrent:
             actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=deterministic)
         else:
@@ -232,7 +227,7 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
             if counted[unit] < quota and len(log) < episodes:
                 counted[unit] += 1
                 members = [i for i in range(unit * team, (unit + 1) * team) if dones[i]]
-                log.append(_episode(members, infos, sources[int(agent_scene[members[0]])], team, limit))
+                log.append(_episode(members, infos, sources[members[0]], team, limit))
     if filming and film_success and last_failure:
         recorder.frames = last_failure  # no success filmed: keep the last whole episode
     wins = sum(e.success for e in log)

@@ -145,8 +145,7 @@ class VideoRecorder:
         self._source: str | None = None
 
     def _chase_camera(self) -> ChaseCamera:
-        slot = int(self.env.agent_scene[self.agent])
-        source = self.env.aggregator.slot_source(slot)
+        source = self.env.aggregator.agent_sources()[self.agent]
         if source != self._source:
             if self._chase is not None:
                 self._chase.close()
