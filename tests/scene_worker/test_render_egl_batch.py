@@ -245,6 +245,18 @@ def test_on_a_cpu_rasteriser_lanes_follow_the_cores_and_frames_reuse_the_heap():
         assert faults < 1000
 
 
+def test_renderers_share_the_process_lanes_and_one_closing_leaves_the_others_drawing():
+    scene = generate_scene("garage-stones", seed=0)
+    poses = random_poses(scene, 24, np.random.default_rng(6))
+    cams = (CameraSpec("depth", "depth", 32, 24),)
+    with make_renderer("egl", scene, cams, lanes=2) as first, make_renderer("egl", scene, cams, lanes=2) as second:
+        want = first.render(poses)
+        second.render(poses)
+        assert len(first._lanes) == 1 and first._lanes == second._lanes   # one extra context for both
+        first.close()
+        assert_same(second.render(poses), want)
+
+
 @pytest.mark.worker
 def test_an_egl_worker_names_its_gl_device_in_the_ready_line_and_health(scene_root):
     from tests.helpers import REPO, _read_line, call, client_session, free_port, stop_process, worker_argv

@@ -23,6 +23,7 @@ import ctypes
 import logging
 import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")  # must precede the first OpenGL import
@@ -44,6 +45,8 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3   # glibc's mallopt parameters
 
 _lock = threading.Lock()
 _context: "EglContext | None" = None
+_lanes_lock = threading.Lock()
+_lanes: "list[tuple[EglContext, ThreadPoolExecutor]]" = []
 
 
 @dataclass
@@ -140,6 +143,20 @@ def extra_context() -> EglContext:
         raise _fail(f"a second OpenGL context on device {main.device_index} failed (error 0x{EGL.eglGetError():x})")
     return EglContext(main.display, context, main.config, main.device_index, main.device_source, main.renderer,
                       main.version)
+
+
+def drawing_lanes(count: int) -> "list[tuple[EglContext, ThreadPoolExecutor]]":
+    """The first ``count`` extra drawing lanes of this process: each another context on the device
+    (:func:`extra_context`), current on its own thread, the executor of that one thread. Made on
+    first use and kept until the process exits, shared by every renderer (an llvmpipe context
+    holds about 24 MB, so one per renderer and core would add up over a worker's scenes)."""
+    with _lanes_lock:
+        while len(_lanes) < count:
+            context = extra_context()
+            lane = ThreadPoolExecutor(1, thread_name_prefix="egl-lane")
+            lane.submit(context.make_current).result()
+            _lanes.append((context, lane))
+        return _lanes[:count]
 
 
 def _fail(what: str) -> ConfigError:

@@ -25,7 +25,8 @@ is read as ``(n, H, W, 3)`` and transposed once). Without ``glMultiDrawElementsI
 or ``VISFLY_EGL_CULL=0``) every tile draws the whole scene, instanced.
 
 On a CPU rasteriser the drones of a call are split between *lanes* (:attr:`BatchEglRenderer.lanes`):
-contexts drawing at once, each on its own thread. llvmpipe shades vertices, clips and sets
+contexts drawing at once, each on its own thread (the process's, shared by its renderers:
+:func:`~visfly_dist.scene_worker.render_egl.drawing_lanes`). llvmpipe shades vertices, clips and sets
 triangles up on the thread that draws, and that is most of a depth image's cost (the triangles in
 view, most smaller than a pixel), so one context keeps one core busy while the raster threads wait
 for its frame. On a GPU one lane is enough.
@@ -68,7 +69,7 @@ from visfly_dist.scene_worker.render_common import (  # noqa: E402
     Renderer,
     drone_segmentation_id,
 )
-from visfly_dist.scene_worker.render_egl import extra_context, gl_context, gl_device  # noqa: E402
+from visfly_dist.scene_worker.render_egl import drawing_lanes, gl_context, gl_device  # noqa: E402
 from visfly_dist.scenes.scene import Scene  # noqa: E402
 
 DRONE_SUBDIVISIONS = 2   # icosphere of 320 faces: within 1.8% of the radius
@@ -405,7 +406,7 @@ class BatchEglRenderer(Renderer):
             raise ConfigError(f"lanes={lanes!r} must be an int in [1, 64]")
         self._lanes_asked = lanes
         self._states: dict[int, dict] = {}          # thread id -> that lane's GL objects (its context current there)
-        self._lanes: list[tuple[object, ThreadPoolExecutor]] = []   # lanes 1..: (context, its one thread)
+        self._lanes: list[ThreadPoolExecutor] = []   # lanes 1.. this renderer has drawn in (drawing_lanes' threads)
         self._translations = np.zeros((len(self.moving), 3))
         self._moved = 0                              # placement version; each lane uploads it once
         self._max_side = MAX_ATLAS
@@ -517,9 +518,8 @@ class BatchEglRenderer(Renderer):
         return vao
 
     def _release(self) -> None:
-        for context, lane in self._lanes:
-            lane.submit(self._release_lane, context).result()
-            lane.shutdown()
+        for lane in self._lanes:
+            lane.submit(self._release_lane).result()
         self._lanes = []
         leftover = list(self._states.values())     # lane 0's, made on whichever thread rendered first
         self._states.clear()
@@ -527,10 +527,10 @@ class BatchEglRenderer(Renderer):
             gl_context()
             for state in leftover:
                 self._gl = state
-                self._release_lane(None)
+                self._release_lane()
 
-    def _release_lane(self, context) -> None:
-        """Free the calling thread's lane (and its extra context, if any)."""
+    def _release_lane(self) -> None:
+        """Free this renderer's GL objects in the calling thread's lane (the context stays)."""
         GL = _gl()
         s, self._gl = self._gl, None
         if s is None:
@@ -543,11 +543,6 @@ class BatchEglRenderer(Renderer):
         GL.glDeleteBuffers(len(s["buffers"]), s["buffers"])
         self._free_targets(s)
         GL.glDeleteFramebuffers(1, [s["fbo"]])
-        if context is not None:
-            from OpenGL import EGL
-
-            context.release()
-            EGL.eglDestroyContext(context.display, context.context)
 
     def _free_targets(self, s: dict) -> None:
         GL = _gl()
@@ -611,14 +606,11 @@ class BatchEglRenderer(Renderer):
         """Render every camera of ``poses`` into ``out[camera.name]`` ``(n, C, H, W)``: the drones split
         between the lanes (:attr:`lanes`), each lane on its own thread and context."""
         lanes = min(self.lanes, max(1, len(poses) // MIN_TILES_PER_LANE))
-        while len(self._lanes) < lanes - 1:
-            context = extra_context()
-            lane = ThreadPoolExecutor(1, thread_name_prefix="egl-lane")
-            lane.submit(context.make_current).result()
-            self._lanes.append((context, lane))
+        extra = [lane for _, lane in drawing_lanes(lanes - 1)]
+        self._lanes += extra[len(self._lanes):]
         bounds = np.linspace(0, len(poses), lanes + 1).round().astype(int)
         jobs = [lane.submit(self._render_rows, poses, show_drones, out, int(lo), int(hi))
-                for (_, lane), lo, hi in zip(self._lanes, bounds[1:-1], bounds[2:])]
+                for lane, lo, hi in zip(extra, bounds[1:-1], bounds[2:])]
         try:
             gl_context()
             self._render_rows(poses, show_drones, out, 0, int(bounds[1]))
