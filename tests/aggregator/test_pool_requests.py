@@ -25,8 +25,8 @@ def test_a_request_is_done_at_its_reply_though_the_worker_holds_the_query():
     held: queue.SimpleQueue = queue.SimpleQueue()
 
     def answer_but_hold(query) -> None:  # replies at once, drops the query (its final message) only later
+        held.put(query)  # before the reply: the test may look at ``held`` as soon as the reply is in
         query.reply(keys.worker_rpc(RUN, "w0"), encode({"type": "echo", "got": decode(query.payload.to_bytes())["type"]}))
-        held.put(query)
 
     try:
         with client_session(endpoint) as session:
