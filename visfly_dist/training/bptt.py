@@ -86,6 +86,8 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
         ConfigError: a bad setting, raised before any worker starts.
     """
     cfg = replace(cfg, algo="bptt", device=check_device(cfg.device)).resolved().validate()
+    # resolved() fills these in and validate() checks them
+    assert cfg.out is not None and cfg.timesteps is not None and cfg.horizon is not None and cfg.lr is not None
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)

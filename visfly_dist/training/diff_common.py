@@ -84,6 +84,10 @@ class Critic(nn.Module):
     where an unnormalised head, moved by about ``lr`` per Adam step, needs thousands of steps.
     """
 
+    mean: torch.Tensor
+    var: torch.Tensor
+    count: torch.Tensor
+
     def __init__(self, observation_space: spaces.Dict, backbone: str = "visfly-cnn") -> None:
         super().__init__()
         self.extractor = VisflyExtractor(observation_space, backbone)
@@ -165,7 +169,12 @@ def rollout_window(env: Any, actor: Callable[[Obs], torch.Tensor], obs: Obs, hor
     n = env.num_envs
     discount = obs_dtype_ones(obs, n)
     total = torch.zeros_like(discount)
-    record_obs, rewards, dones, next_values, valids, episodes = [], [], [], [], [], []
+    record_obs: list[Obs] = []
+    rewards: list[torch.Tensor] = []
+    dones: list[torch.Tensor] = []
+    next_values: list[torch.Tensor] = []
+    valids: list[torch.Tensor] = []
+    episodes: list[tuple[float, float, float]] = []
     lost_agents = 0
     done = torch.zeros(n, dtype=torch.bool, device=discount.device)
     for _ in range(horizon):

@@ -25,6 +25,7 @@ import copy
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Callable
 
 import torch
 from stable_baselines3.common.logger import configure
@@ -35,6 +36,7 @@ from visfly_dist.training.diff_common import (
     Critic,
     DiffActor,
     EpisodeLog,
+    Obs,
     Window,
     clip_and_step,
     decay_lr,
@@ -56,6 +58,11 @@ while the critic learns (its value in the loss, and in the critic's targets, is 
 def scale_gradient(x: torch.Tensor, weight: float) -> torch.Tensor:
     """``x`` whose gradient is scaled by ``weight`` (its value unchanged)."""
     return x if weight == 1.0 else weight * x + (1 - weight) * x.detach()
+
+
+def ramped(critic: Callable[[Obs], torch.Tensor], weight: float) -> Callable[[Obs], torch.Tensor]:
+    """``critic`` whose output's gradient is scaled by ``weight`` (see :func:`scale_gradient`)."""
+    return lambda obs: scale_gradient(critic(obs), weight)
 
 
 def lambda_returns(window: Window, values: torch.Tensor, gamma: float, lam: float) -> torch.Tensor:
@@ -108,6 +115,9 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
         ConfigError: a bad setting, raised before any worker starts.
     """
     cfg = replace(cfg, algo="shac", device=check_device(cfg.device)).resolved().validate()
+    # resolved() fills these in and validate() checks them
+    assert (cfg.out is not None and cfg.timesteps is not None and cfg.horizon is not None and cfg.lr is not None
+            and cfg.batch_size is not None)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)
@@ -130,7 +140,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
                 # Actor: the window's loss, through the dynamics and the target critic's input.
                 weight = min(1.0, p.windows / VALUE_RAMP_WINDOWS)
                 window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma,
-                                        value=lambda o, weight=weight: scale_gradient(target(o), weight))
+                                        value=ramped(target, weight))
                 p.timesteps += window.steps * env.num_envs
                 actor_opt.zero_grad(set_to_none=True)
                 window.loss.backward()
