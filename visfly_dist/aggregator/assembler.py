@@ -74,7 +74,8 @@ def scatter_reply(out: Observation, rows: np.ndarray, reply: dict[str, Any], cam
     """
     n = len(rows)
     images = reply.get("images") or {}
-    expected = [] if images_in_place else [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in cameras]
+    expected: list[tuple[str, Any, tuple[int, ...]]] = (
+        [] if images_in_place else [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in cameras])
     expected += [("collision", reply.get("collision"), (n,)), ("inside", reply.get("inside"), (n,)),
                  ("nearest", reply.get("nearest"), (n, 3)), ("distance", reply.get("distance"), (n,))]
     for name, value, shape in expected:

@@ -147,8 +147,8 @@ class WorkerPool:
         self._generation: dict[str, int] = {}
         self._local: dict[str, LocalWorker] = {}
         self._spawned = 0
-        self._session = None
-        self._subscriber = None
+        self._session: zenoh.Session | None = None
+        self._subscriber: zenoh.Subscriber | None = None
         self._log_dir: str | None = None
         self._launch: WorkerLaunchSpec | None = None
         self._replies = threading.Condition()
@@ -161,20 +161,24 @@ class WorkerPool:
     def _session_config(self) -> tuple[SessionConfig, tuple[str, ...]]:
         """This process's session, and the endpoints local workers connect to."""
         cfg = self.config
-        common = dict(shared_memory=cfg.shared_memory, lease_ms=cfg.lease_ms, config_file=cfg.zenoh_config)
+        listen: tuple[str, ...]
         if cfg.connect and not cfg.listen:
-            return SessionConfig(mode="client", connect=cfg.connect, listen=(), **common), cfg.connect
-        listen = cfg.listen or (f"tcp/127.0.0.1:{free_port()}",)
-        workers_connect = cfg.connect or tuple(_loopback(ep) for ep in listen)
-        return SessionConfig(mode="peer", connect=cfg.connect, listen=listen, **common), workers_connect
+            mode, listen, workers_connect = "client", (), cfg.connect
+        else:
+            mode = "peer"
+            listen = cfg.listen or (f"tcp/127.0.0.1:{free_port()}",)
+            workers_connect = cfg.connect or tuple(_loopback(ep) for ep in listen)
+        session = SessionConfig(mode=mode, connect=cfg.connect, listen=listen, shared_memory=cfg.shared_memory,
+                                lease_ms=cfg.lease_ms, config_file=cfg.zenoh_config)
+        return session, workers_connect
 
     def open(self) -> None:
         """Open the session, watch liveliness, and spawn the local workers (not waiting for them)."""
         session_cfg, workers_connect = self._session_config()
         self._user = session_cfg.user()
-        self._session = open_session(session_cfg)
+        self._session = session = open_session(session_cfg)
         try:
-            self._subscriber = self._session.liveliness().declare_subscriber(
+            self._subscriber = session.liveliness().declare_subscriber(
                 keys.workers_alive_pattern(self.run_id), zenoh.handlers.FifoChannel(LIVELINESS_QUEUE), history=True)
             if self.config.num_local_workers:
                 self._log_dir = tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")

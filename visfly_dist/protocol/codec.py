@@ -47,7 +47,7 @@ class _Tail:
             if arr.dtype.str not in ALLOWED_DTYPES:
                 raise ProtocolError(f"array dtype {arr.dtype} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
             ref = {_ND: 1, "dtype": arr.dtype.str, "shape": list(arr.shape), "offset": self.size, "nbytes": arr.nbytes}
-            self.buffers.append(memoryview(arr.reshape(-1)).cast("B") if arr.size else memoryview(b""))
+            self.buffers.append(arr.reshape(-1).data.cast("B") if arr.size else memoryview(b""))
             self.size += arr.nbytes
             return ref
         if isinstance(obj, np.generic):

@@ -69,7 +69,7 @@ def release_segments() -> list[str]:
 
 def _open_files_in(fd_dir: Path, wanted: Callable[[str], bool]) -> set[str]:
     """Paths among the open descriptors listed in ``fd_dir`` for which ``wanted(path)`` holds."""
-    found = set()
+    found: set[str] = set()
     try:
         entries = list(fd_dir.iterdir())
     except OSError:  # the process is gone, or not ours to inspect

@@ -95,7 +95,7 @@ class SegmentMappings:
                 row_bytes = image[0].nbytes if len(image) else 0
                 for start, count in zip(starts.tolist(), counts.tolist()):
                     if count:
-                        _pwrite_all(fd, memoryview(image[start:start + count]).cast("B"), block + start * row_bytes)
+                        _pwrite_all(fd, image[start:start + count].data.cast("B"), block + start * row_bytes)
             os.pwrite(fd, SEQ.pack(target.seq), target.seq_offset)
         except OSError as exc:
             self._drop(target.name, (fd, size))

@@ -479,7 +479,8 @@ class SceneWorker:
             images, target, starts = self._image_buffers(request, cameras, counts, reply)
             with self._timer.time("render", timings):
                 render_scenes_into([(scene.renderer, poses[start:end], scene.multi_agent, t)
-                                    for scene, (start, end), t in zip(loaded, bounds, times)], images, starts)
+                                    for scene, (start, end), t in zip(loaded, bounds, times)], images,
+                                   starts.tolist())
             why = target is not None and self._segments.publish(target, images, starts, counts)
             if target is not None and not why:
                 reply["images_in_segment"] = True
@@ -501,10 +502,11 @@ class SceneWorker:
         return reply
 
     def _image_buffers(self, request: StepRequest, cameras: Sequence[CameraSpec], counts: np.ndarray,
-                       reply: dict[str, Any]) -> tuple[dict[str, np.ndarray], SegmentTarget | None, np.ndarray | None]:
+                       reply: dict[str, Any]) -> tuple[dict[str, np.ndarray], SegmentTarget | None, np.ndarray]:
         """Where the step's images go: the request's image segment if this worker can use it (its views,
-        the segment target and each entry's first row there), else fresh arrays for the reply (and
-        None twice, with ``segment_refused`` set when a segment was offered)."""
+        the segment target and each entry's first row there), else fresh arrays for the reply (None for
+        the target, the entries one after another from row 0, and ``segment_refused`` set when a segment
+        was offered)."""
         target = request.image_segment
         if target is not None and not self.session_config.shared_memory:
             reply["segment_refused"] = f"worker {self.worker_id!r} runs without shared memory (--no-shm)"
@@ -516,7 +518,8 @@ class SceneWorker:
                 return views, target, starts
             log.info("replying inline: %s", why)
             reply["segment_refused"] = why
-        return {c.name: np.empty((int(counts.sum()), *c.shape), c.dtype) for c in cameras}, None, None
+        images = {c.name: np.empty((int(counts.sum()), *c.shape), c.dtype) for c in cameras}
+        return images, None, np.cumsum(counts) - counts
 
     def _check_pixels(self, pixels: int) -> None:
         if pixels > self.limits.max_pixels:
