@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -54,8 +54,8 @@ RAYS_PER_CHUNK = 1 << 15
 TRACERS = ("native", "embreex")
 
 
-def _embreex_scene(triangles: np.ndarray):
-    """An embreex scene of ``(F, 3, 3)`` float32 triangles, its BVH built now."""
+def _embreex_scene(triangles: np.ndarray) -> Any:
+    """An embreex scene of ``(F, 3, 3)`` float32 triangles, its BVH built now (embreex is untyped)."""
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
@@ -88,6 +88,11 @@ class _Hits:
     seg: np.ndarray | None = None       # uint16 ids (native tracer, segmentation cameras)
     drone: np.ndarray | None = None     # int64 index of the drone seen, -1: none
     drone_light: np.ndarray | None = None   # float64 brightness of the drone seen (RGB)
+
+    def triangles(self) -> np.ndarray:
+        """:attr:`prim`, which every camera's hits carry but the native tracer's depth and segmentation ones."""
+        assert self.prim is not None, "no triangles traced for this camera"
+        return self.prim
 
 
 @dataclass
@@ -139,7 +144,10 @@ class RaycastRenderer(Renderer):
         self._shader = SurfaceShader(meshes) if any(c.kind == "rgb" for c in self.cameras) else None
         self._rays = {c.name: pixel_rays(c) for c in self.cameras}
         self._slopes = {c.name: tuple(s.astype(np.float32) for s in pixel_slopes(c)) for c in self.cameras}
-        self._native = self._embree = self._embree_moving = self._pool = None
+        self._native: render_native.NativeScene | render_native.NativeInstancedScene | None = None
+        self._embree: Any = None            # embreex scenes: the static objects', the moving ones' placed
+        self._embree_moving: Any = None
+        self._pool: ThreadPoolExecutor | None = None
         self.tracer = tracer or default_tracer()[0]
         if self.tracer == "native":
             try:
@@ -166,7 +174,7 @@ class RaycastRenderer(Renderer):
     def _move(self, translations: np.ndarray) -> None:
         """Native: new instance transforms (the top-level BVH only). embreex: a fresh BVH of the
         moving objects' triangles alone, translated (the static BVH is kept)."""
-        if self._native is not None:
+        if isinstance(self._native, render_native.NativeInstancedScene):
             self._native.move(translations)
             return
         shift = np.repeat(translations, self._part_counts[1:], axis=0).astype(np.float32)
@@ -203,7 +211,7 @@ class RaycastRenderer(Renderer):
         ``out``: camera name -> ``(n, 1, H, W)`` C-contiguous array that depth and segmentation
         cameras are traced into (their images are then views of it); others get their own.
         """
-        assert self.tracer == "native"
+        assert self.tracer == "native" and self._native is not None
         n = len(poses)
         batches = []
         drawn = show_drones and n > 1 and self.drone_radius > 0
@@ -241,8 +249,9 @@ class RaycastRenderer(Renderer):
         n = len(plan.poses)
         out = {}
         for cam, b in zip(self.cameras, plan.batches):
-            flat = lambda a, cam=cam: None if a is None else a.reshape(n, cam.height * cam.width, *a.shape[3:])  # noqa: E731
-            hits = _Hits(flat(b.depth), flat(b.prim), flat(b.uv), flat(b.seg), flat(b.drone), flat(b.light))
+            pixels = cam.height * cam.width
+            flat = lambda a, pixels=pixels: None if a is None else a.reshape(n, pixels, *a.shape[3:])  # noqa: E731
+            hits = _Hits(b.depth.reshape(n, pixels), flat(b.prim), flat(b.uv), flat(b.seg), flat(b.drone), flat(b.light))
             out[cam.name] = self._image(cam, plan.poses, hits)
         return out
 
@@ -259,12 +268,12 @@ class RaycastRenderer(Renderer):
     def _image(self, cam: CameraSpec, poses: np.ndarray, hits: _Hits) -> np.ndarray:
         n = len(hits.depth)
         shape = (n, 1, cam.height, cam.width)
-        seen = None if hits.drone is None else hits.drone >= 0
         if cam.kind == "depth":
             return hits.depth.reshape(shape)
         if cam.kind == "segmentation":
-            seg = hits.seg if hits.seg is not None else self._object_ids[hits.prim + 1]
-            if seen is not None:
+            seg = hits.seg if hits.seg is not None else self._object_ids[hits.triangles() + 1]
+            if hits.drone is not None:
+                seen = hits.drone >= 0
                 seg[seen] = drone_segmentation_id(hits.drone[seen])
             return seg.reshape(shape)
         rgb = self._shade(cam, poses, hits)
@@ -274,8 +283,10 @@ class RaycastRenderer(Renderer):
         """RGB ``(n, HW, 3)`` uint8 of the hits: the surface colour at the hit (:mod:`shading`: texture
         at the hit's UV, or face/vertex colours) under the fixed light, sky where none; drones in their
         colour under the same light."""
-        rgb = shade_rgb(self._shader, cam, poses, hits.depth, hits.prim + 1, SKY_RGB)
+        assert self._shader is not None, "a renderer with an rgb camera has a shader"
+        rgb = shade_rgb(self._shader, cam, poses, hits.depth, hits.triangles() + 1, SKY_RGB)
         if hits.drone is not None:
+            assert hits.drone_light is not None, "rgb hits carry the drones' light with the drones"
             seen = hits.drone >= 0
             rgb[seen] = (np.asarray(DRONE_RGB) * hits.drone_light[seen][:, None]).round().astype(np.uint8)
         return rgb
@@ -307,13 +318,13 @@ class RaycastRenderer(Renderer):
         # direction of pixel (i, j) = R @ (1, -right[j], -down[i]): a row term plus a column term
         rows = rots[:, None, :, 0] - down[None, :, None] * rots[:, None, :, 2]       # (k, H, 3)
         cols = -right[None, :, None] * rots[:, None, :, 1]                          # (k, W, 3)
-        dirs = np.empty((k, cam.height, cam.width, 3), np.float32)
+        dirs: np.ndarray = np.empty((k, cam.height, cam.width, 3), np.float32)
         np.add(rows[:, :, None, :], cols[:, None, :, :], out=dirs)
         dirs = dirs.reshape(k, m, 3)
         starts = dirs * np.float32(cam.near)
         starts += origins.astype(np.float32)[:, None, :]
         starts, dirs = starts.reshape(-1, 3), dirs.reshape(-1, 3)
-        hits = None
+        hits: dict[str, np.ndarray] | None = None
         for scene, offset in ((self._embree, 0), (self._embree_moving, self._static_count)):
             if scene is None:
                 continue
@@ -324,8 +335,9 @@ class RaycastRenderer(Renderer):
             else:   # the nearer hit wins (a miss has primID -1)
                 nearer = (more["primID"] >= 0) & ((hits["primID"] < 0) | (more["tfar"] < hits["tfar"]))
                 hits = {key: np.where(nearer, more[key], hits[key]) for key in ("primID", "tfar", "u", "v")}
+        assert hits is not None, "traced only where there is a BVH"
         prim = hits["primID"].reshape(k, m)
-        out.prim[s] = prim
+        out.triangles()[s] = prim
         np.copyto(out.depth[s], np.where(prim >= 0, np.float32(cam.near) + hits["tfar"].reshape(k, m),
                                          np.float32(cam.far)))
         if out.uv is not None:
@@ -378,7 +390,7 @@ class RaycastRenderer(Renderer):
             pix, t = pix[hit], t[hit]
             depth[a, pix] = t
             drone[a, pix] = b
-            if want_light:
+            if light is not None:
                 normals = (t[:, None] * d[hit] - c) / r @ rots[a].T
                 light[a, pix] = lambert(normals)
         return drone, light
