@@ -28,7 +28,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
+from gymnasium import spaces
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.vec_env import VecEnv
 
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.tasks import make_env
@@ -57,8 +59,9 @@ def first_observation(env: DroneEnvBase) -> dict[str, torch.Tensor]:
     return {k: torch.as_tensor(v, device=env.device) for k, v in env.reset().items()}
 
 
-def load_actor(checkpoint: Path, env: DroneEnvBase, backbone: str = "visfly-cnn") -> DiffActor:
+def load_actor(checkpoint: Path, env: VecEnv, backbone: str = "visfly-cnn") -> DiffActor:
     """The actor of a BPTT/SHAC checkpoint (``.npz``), for ``env``'s observation space."""
+    assert isinstance(env.observation_space, spaces.Dict)  # every task's observation space
     actor = DiffActor(env.observation_space, backbone)
     load_params({"actor": actor}, checkpoint)
     return actor

@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.errors import ConfigError
     from visfly_dist.training.bptt import load_actor
-    from visfly_dist.training.evaluation import build_eval_env, evaluate, find_run_config, load_policy
+    from visfly_dist.training.evaluation import Policy, build_eval_env, evaluate, find_run_config, load_policy
     from visfly_dist.training.host_plan import check_device
     from visfly_dist.training.video import VideoRecorder
 
@@ -91,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     env = build_eval_env(args.task, args.num_envs, args.seed, run_cfg, overrides, pool)
     recorder, results = None, []
     try:
+        model: Policy
         if differentiable:
             model = load_actor(checkpoint, env.unwrapped, run_cfg.backbone if run_cfg is not None else "visfly-cnn")
         else:

@@ -20,12 +20,14 @@ import zipfile
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TypeGuard
 
 import numpy as np
 from stable_baselines3 import PPO
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
+from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.errors import ConfigError
 from visfly_dist.tasks import make_env, task_class
 from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
@@ -33,6 +35,22 @@ from visfly_dist.training.checkpoints import load_normalization, norm_path
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.run import env_kwargs
 from visfly_dist.training.video import VideoRecorder
+
+
+class Policy(Protocol):
+    """What :func:`evaluate` runs: anything with SB3's ``predict`` (an SB3 model, a BPTT/SHAC
+    :class:`~visfly_dist.training.diff_common.DiffActor`)."""
+
+    def predict(self, observation: dict[str, np.ndarray], /, *,
+                deterministic: bool = ...) -> tuple[np.ndarray, object]: ...
+
+
+class RecurrentPolicy(Protocol):
+    """A policy whose ``predict`` takes and returns its state (SB3's recurrent models)."""
+
+    def predict(self, observation: dict[str, np.ndarray], state: tuple[np.ndarray, ...] | None = ...,
+                episode_start: np.ndarray | None = ...,
+                deterministic: bool = ...) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]: ...
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -137,12 +155,12 @@ def is_recurrent_checkpoint(checkpoint: Path) -> bool:
     return module.startswith("sb3_contrib.common.recurrent")
 
 
-def is_recurrent(model: Any) -> bool:
+def is_recurrent(model: object) -> TypeGuard[RecurrentPolicy]:
     """Whether ``model`` (an SB3 model) has a recurrent policy, whose ``predict`` takes and returns a state."""
     return hasattr(getattr(model, "policy", None), "lstm_actor")
 
 
-def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[Any, VecEnv]:
+def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[OnPolicyAlgorithm, VecEnv]:
     """Load a PPO (or, recognised from the zip, RecurrentPPO) checkpoint for ``env``; wraps ``env`` in
     its saved normalisation when there is one."""
     if not checkpoint.is_file():
@@ -150,10 +168,11 @@ def load_policy(checkpoint: Path, env: VecEnv, device: str = "cpu") -> tuple[Any
     stats = norm_path(checkpoint)
     if stats.is_file():
         env = load_normalization(env, stats)
+    cls: type[OnPolicyAlgorithm] = PPO
     if is_recurrent_checkpoint(checkpoint):
-        from sb3_contrib import RecurrentPPO as cls
-    else:
-        cls = PPO
+        from sb3_contrib import RecurrentPPO
+
+        cls = RecurrentPPO
     try:
         model = cls.load(checkpoint, env=env, device=device)
     except ValueError as exc:
@@ -171,7 +190,7 @@ def _episode(members: list[int], infos: list[dict[str, Any]], scene: str, team: 
                    episode_return=float(np.mean([infos[i]["episode"]["r"] for i in members])), length=max(lengths))
 
 
-def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True, seed: int = 0,
+def evaluate(model: Policy, env: VecEnv, episodes: int, deterministic: bool = True, seed: int = 0,
              recorder: VideoRecorder | None = None, film_success: bool = False) -> EvalStats:
     """Run ``model`` on ``env`` (reseeded with ``seed``) until ``episodes`` episodes are counted.
 
@@ -190,46 +209,48 @@ def evaluate(model: PPO, env: VecEnv, episodes: int, deterministic: bool = True,
     if episodes < 1:
         raise ConfigError(f"episodes={episodes!r} must be >= 1")
     base = env.unwrapped
+    assert isinstance(base, DroneEnvBase)  # every task's env
     team = int(getattr(base, "team_size", 1))
     n, limit = env.num_envs, int(base.config.max_episode_steps)
     quota = math.ceil(episodes / (n // team))
     counted = np.zeros(n // team, dtype=np.int64)
     log: list[Episode] = []
-    filming, filmed_length, filmed_success = recorder is not None, 0, False
+    filming, filmed_length, filmed_success = recorder, 0, False  # filming: the recorder while it films
     last_failure: list[np.ndarray] = []
     env.seed(seed)
     obs = env.reset()
-    recurrent, state, starts = is_recurrent(model), None, np.ones(n, dtype=bool)
+    recurrent, state, starts = model if is_recurrent(model) else None, None, np.ones(n, dtype=bool)
     step, ret = 0, 0.0
     while len(log) < episodes:
-        if filming:
-            recorder.add(obs, f"step {step}  return {ret:.2f}")
+        assert isinstance(obs, dict)  # every task's observation space is a Dict
+        if filming is not None:
+            filming.add(obs, f"step {step}  return {ret:.2f}")
         sources = base.aggregator.agent_sources()  # the scene of each agent's running episode
-        if recurrent:
-            actions, state = model.predict(obs, state=state, episode_start=starts, deterministic=deterministic)
+        if recurrent is not None:
+            actions, state = recurrent.predict(obs, state=state, episode_start=starts, deterministic=deterministic)
         else:
             actions, _ = model.predict(obs, deterministic=deterministic)
         obs, rewards, dones, infos = env.step(actions)
         starts = np.asarray(dones, dtype=bool)
-        if filming:
+        if filming is not None:
             raw = env.get_original_reward() if isinstance(env, VecNormalize) else rewards
-            step, ret = step + 1, ret + float(raw[recorder.agent])
+            step, ret = step + 1, ret + float(raw[filming.agent])
         for i in np.flatnonzero(dones):
             info, ep = infos[i], infos[i]["episode"]
-            if filming and i == recorder.agent:
+            if filming is not None and i == filming.agent:
                 filmed_length, filmed_success = int(ep["l"]), bool(info.get("is_success"))
                 if filmed_success or not film_success:
-                    filming = False
+                    filming = None
                 else:
-                    last_failure, recorder.frames = recorder.frames, []
+                    last_failure, filming.frames = filming.frames, []
                     step, ret = 0, 0.0
         for unit in np.unique(np.flatnonzero(dones) // team):
             if counted[unit] < quota and len(log) < episodes:
                 counted[unit] += 1
                 members = [i for i in range(unit * team, (unit + 1) * team) if dones[i]]
                 log.append(_episode(members, infos, sources[members[0]], team, limit))
-    if filming and film_success and last_failure:
-        recorder.frames = last_failure  # no success filmed: keep the last whole episode
+    if filming is not None and film_success and last_failure:
+        filming.frames = last_failure  # no success filmed: keep the last whole episode
     wins = sum(e.success for e in log)
     causes = Counter(e.end_cause for e in log)
     return EvalStats(

@@ -132,7 +132,7 @@ class LstmCore(nn.Module):
         if lstm.batch_first or lstm.bidirectional:
             raise ConfigError("LstmCore takes a sequence-first, one-directional LSTM (RecurrentPPO's)")
         self.lstm = lstm
-        self.hidden_shape = (2, lstm.num_layers, lstm.hidden_size)
+        self.hidden_shape: tuple[int, ...] = (2, lstm.num_layers, lstm.hidden_size)
 
     def forward(self, features: torch.Tensor, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h, c = hidden[:, 0].transpose(0, 1).contiguous(), hidden[:, 1].transpose(0, 1).contiguous()
@@ -189,8 +189,11 @@ class DeployedActor(nn.Module):
     """Raw observations (positional, in ``keys`` order; then ``hidden`` when recurrent) -> clipped
     deterministic action (and the next hidden state). See the module docstring."""
 
+    low: torch.Tensor
+    high: torch.Tensor
+
     def __init__(self, policy: Any, keys: Sequence[str], normalization: ObsNormalization | None = None,
-                 core: nn.Module | None = None) -> None:
+                 core: RecurrentCore | None = None) -> None:
         super().__init__()
         from stable_baselines3.common.distributions import DiagGaussianDistribution, SquashedDiagGaussianDistribution
 
@@ -252,11 +255,27 @@ def _dtype_name(dtype: Any) -> str:
     return np.dtype(dtype).name
 
 
+def observation_entries(space: spaces.Space) -> dict[str, spaces.Box]:
+    """The entries of ``space``, a Dict of Boxes (what the export takes).
+
+    Raises:
+        ConfigError: another kind of space.
+    """
+    if not isinstance(space, spaces.Dict):
+        raise ConfigError(f"export needs a Dict observation space, got {space!r}")
+    entries = {}
+    for key, entry in space.spaces.items():
+        if not isinstance(entry, spaces.Box):
+            raise ConfigError(f"export needs Box observation entries; {key!r} is {entry!r}")
+        entries[key] = entry
+    return entries
+
+
 def input_specs(observation_space: spaces.Dict, cameras: Sequence[Any] = ()) -> list[dict[str, Any]]:
     """One ``{name, shape, dtype, doc}`` per observation entry (shape without the batch axis)."""
     by_name = {c.name: c for c in cameras}
     specs = []
-    for key, space in observation_space.spaces.items():
+    for key, space in observation_entries(observation_space).items():
         if len(space.shape) == 3:
             cam = by_name.get(key)
             kind = cam.kind if cam is not None else ("rgb" if space.dtype == np.uint8 else
@@ -272,7 +291,7 @@ def input_specs(observation_space: spaces.Dict, cameras: Sequence[Any] = ()) -> 
 
 
 def export_policy(policy: Any, out: str | Path, normalization: ObsNormalization | None = None,
-                  core: nn.Module | None = None, metadata: dict[str, Any] | None = None,
+                  core: RecurrentCore | None = None, metadata: dict[str, Any] | None = None,
                   cameras: Sequence[Any] = (), opset: int = OPSET) -> ExportInfo:
     """Write ``policy``'s (an SB3 ``ActorCriticPolicy`` with a Dict observation space) deterministic
     actor to ``out`` (ONNX), with ``normalization`` and the action clipping inside.
@@ -289,11 +308,10 @@ def export_policy(policy: Any, out: str | Path, normalization: ObsNormalization 
     import onnx
 
     space = policy.observation_space
-    if not isinstance(space, spaces.Dict):
-        raise ConfigError(f"export needs a Dict observation space, got {space!r}")
-    keys = list(space.spaces)
+    entries = observation_entries(space)
+    keys = list(entries)
     actor = DeployedActor(policy, keys, normalization, core).to("cpu").eval()
-    dummies = [torch.as_tensor(np.zeros((1, *s.shape), dtype=s.dtype)) for s in space.spaces.values()]
+    dummies = [torch.as_tensor(np.zeros((1, *s.shape), dtype=s.dtype)) for s in entries.values()]
     names, outputs = list(keys), [ACTION_OUTPUT]
     if core is not None:
         dummies.append(torch.zeros((1, *core.hidden_shape)))
@@ -353,6 +371,7 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     when found, else the task's defaults); they only fill the metadata.
     """
     from stable_baselines3 import PPO
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 
     from visfly_dist.training.checkpoints import norm_path
     from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint
@@ -365,18 +384,21 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
         run_cfg = find_run_config(checkpoint)
         env_settings = env_kwargs(run_cfg.resolved()) if run_cfg is not None and run_cfg.task == task else {}
     recurrent = is_recurrent_checkpoint(checkpoint)
+    model: OnPolicyAlgorithm
+    core: LstmCore | None = None
     if recurrent:
         from sb3_contrib import RecurrentPPO
 
         model = RecurrentPPO.load(checkpoint, device="cpu")
-        core: nn.Module | None = LstmCore(model.policy.lstm_actor)
+        assert isinstance(model.policy.lstm_actor, nn.LSTM)  # RecurrentPPO's policy (typed as any actor-critic policy)
+        core = LstmCore(model.policy.lstm_actor)
     else:
-        model, core = PPO.load(checkpoint, device="cpu"), None
+        model = PPO.load(checkpoint, device="cpu")
     stats = norm_path(checkpoint)
     normalization = ObsNormalization.load(stats) if stats.is_file() else None
     meta, cameras = task_metadata(task, env_settings)
     task_space = set(OBSERVATION_DOCS) | {c.name for c in cameras}
-    missing = [k for k in model.observation_space.spaces if k not in task_space]
+    missing = [k for k in observation_entries(model.observation_space) if k not in task_space]
     if missing:
         raise ConfigError(f"checkpoint {checkpoint} observes {missing}, which task {task!r} does not give; is it another task's?")
     meta.update(source_checkpoint=str(checkpoint), normalization=str(stats) if normalization is not None else None)

@@ -146,12 +146,13 @@ class VideoRecorder:
 
     def _chase_camera(self) -> ChaseCamera:
         source = self.env.aggregator.agent_sources()[self.agent]
-        if source != self._source:
-            if self._chase is not None:
-                self._chase.close()
-            self._chase = ChaseCamera(resolve_source(source, self.env.config.pool.scene_roots))
+        chase = self._chase
+        if chase is None or source != self._source:
+            if chase is not None:
+                chase.close()
+            chase = self._chase = ChaseCamera(resolve_source(source, self.env.config.pool.scene_roots))
             self._source = source
-        return self._chase
+        return chase
 
     def add(self, obs: dict[str, np.ndarray], text: str = "") -> None:
         """Append a frame for the observation ``obs`` (all agents' rows) and the env's current state."""
@@ -179,7 +180,7 @@ class VideoRecorder:
         fps = 1.0 / float(self.env.config.ctrl_dt) if fps is None else float(fps)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        imageio.mimsave(path, self.frames, duration=gif_duration_ms(fps), loop=0)
+        imageio.mimsave(path, list(self.frames), duration=gif_duration_ms(fps), loop=0)
         return path
 
     def close(self) -> None:
