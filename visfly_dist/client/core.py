@@ -34,6 +34,7 @@ from visfly_dist.aggregator.assembler import empty_observation
 from visfly_dist.client.buffer_pool import BufferPool
 from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
 from visfly_dist.client.frame import SensorFrame
+from visfly_dist.client.lost_holds import LostHolds
 from visfly_dist.client.noise import SensorNoise
 from visfly_dist.dynamics import Quadrotor, QuadState, load_airframe
 from visfly_dist.errors import ConfigError
@@ -177,7 +178,7 @@ class TensorEnv:
         self._everyone = torch.ones(n, dtype=torch.bool, device=self.device)  # read only: the group of a plain step
         self._no_one = torch.zeros(n, dtype=torch.bool, device=self.device)  # read only: nobody held
         self._oob: tuple[QuadState, torch.Tensor, torch.Tensor] | None = None  # out_of_bounds of one state
-        self._lost_since = np.full(n, np.nan)  # per agent: when its worker stopped answering (monotonic s)
+        self._lost_holds = LostHolds(n, config.lost_hold_s)  # agents whose worker failed wait, up to a bound
 
     # ----- task hooks ---------------------------------------------------------------------------
 
@@ -385,21 +386,14 @@ class TensorEnv:
         when there are none). An agent is held from the first step its worker fails to answer for
         up to ``lost_hold_s``; after that its episode is cut (truncated, ``lost``) once, and the
         next one is held again if the worker is still away."""
-        since = self._lost_since
         agents = flight.ticket.agents
         if not lost_rows.any():
-            if not np.isnan(since[agents]).all():
-                since[agents] = np.nan  # served again
+            self._lost_holds.served(agents)
             return None
-        now = time.monotonic()
         lost = np.zeros(self.num_envs, dtype=bool)
         lost[agents] = lost_rows
         lost &= ~flight.held.cpu().numpy()  # an agent held by the caller stays as it is asked
-        since[flight.members & ~lost] = np.nan
-        since[lost & np.isnan(since)] = now
-        expired = lost & (now - since >= self.config.lost_hold_s)
-        since[expired] = np.nan
-        paused = lost & ~expired
+        paused = self._lost_holds.update(flight.members, lost, time.monotonic())
         return torch.as_tensor(paused, device=self.device) if paused.any() else None
 
     # ----- asynchronous stepping (EnvPool-style) --------------------------------------------------
