@@ -35,12 +35,13 @@ from __future__ import annotations
 import os
 import threading
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
+from gymnasium import spaces
 from stable_baselines3 import PPO
-from stable_baselines3.common.buffers import DictRolloutBuffer, RolloutBuffer
+from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
@@ -131,7 +132,7 @@ class OverlappedPPO(PPO):
         self.phase_seconds["wait_s"] += time.perf_counter() - t0
         self._worker = None
         collected, self._collected = self._collected, None
-        assert collected is not None
+        assert collected is not None and self._next_buffer is not None  # both set with the worker
         if "error" in collected:
             raise collected["error"]
         self.rollout_buffer, self._next_buffer = self._next_buffer, self.rollout_buffer
@@ -171,8 +172,7 @@ class OverlappedPPO(PPO):
 
     def _start_collection(self) -> None:
         if self._next_buffer is None:
-            buffer_class = DictRolloutBuffer if isinstance(self.rollout_buffer, DictRolloutBuffer) else RolloutBuffer
-            self._next_buffer = buffer_class(self.n_steps, self.observation_space, self.action_space, device=self.device,
+            self._next_buffer = type(self.rollout_buffer)(self.n_steps, self.observation_space, self.action_space, device=self.device,
                                              gamma=self.gamma, gae_lambda=self.gae_lambda, n_envs=self.n_envs)
         if self._behaviour is None:
             self._behaviour = self.policy_class(self.observation_space, self.action_space, self.lr_schedule,
@@ -187,9 +187,11 @@ class OverlappedPPO(PPO):
         """SB3's rollout loop with ``policy``, recording infos for the main thread to replay."""
         t0 = time.perf_counter()
         try:
-            env = self.env
-            assert env is not None
+            env, action_space = self.env, self.action_space
             obs, episode_starts = self._last_obs, self._last_episode_starts
+            # learn() set the env and the first observation; the drones' actions are a Box
+            assert env is not None and obs is not None and episode_starts is not None
+            assert isinstance(action_space, spaces.Box)
             buffer.reset()
             steps = []
             dones = episode_starts
@@ -197,15 +199,17 @@ class OverlappedPPO(PPO):
                 with torch.no_grad():
                     actions, values, log_probs = policy(obs_as_tensor(obs, self.device))
                 actions = actions.cpu().numpy()
-                clipped = np.clip(actions, self.action_space.low, self.action_space.high)
+                clipped = np.clip(actions, action_space.low, action_space.high)
                 new_obs, rewards, dones, infos = env.step(clipped)
+                assert not isinstance(new_obs, tuple)  # SB3's buffers take an array or a dict
                 for idx, done in enumerate(dones):  # bootstrap truncated episodes, as SB3 does
                     if done and infos[idx].get("terminal_observation") is not None \
                             and infos[idx].get("TimeLimit.truncated", False):
                         terminal = policy.obs_to_tensor(infos[idx]["terminal_observation"])[0]
                         with torch.no_grad():
                             rewards[idx] += self.gamma * policy.predict_values(terminal)[0].item()
-                buffer.add(obs, actions.reshape(-1, *self.action_space.shape), rewards, episode_starts, values,
+                # RolloutBuffer.add is typed for arrays; the DictRolloutBuffer of a Dict space takes the dict
+                buffer.add(cast(np.ndarray, obs), actions.reshape(-1, *action_space.shape), rewards, episode_starts, values,
                            log_probs)
                 steps.append((infos, dones, rewards))
                 obs, episode_starts = new_obs, dones
@@ -242,6 +246,7 @@ def decouple_lagged_rollout(policy: Any, buffer: RolloutBuffer) -> np.ndarray:
     with torch.no_grad():
         for start in range(0, buffer.buffer_size, steps):
             rows = slice(start, start + steps)
+            obs: torch.Tensor | dict[str, torch.Tensor]
             if isinstance(buffer.observations, dict):
                 obs = {k: _flat_tensor(v[rows], policy.device) for k, v in buffer.observations.items()}
             else:

@@ -31,12 +31,17 @@ from __future__ import annotations
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any, Callable
 
 import torch
+from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.logger import configure
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
+from visfly_dist.client.env_base import DroneEnvBase
+from visfly_dist.errors import ConfigError
 from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
 from visfly_dist.training.callbacks import SuccessCallback
@@ -55,6 +60,7 @@ def build_env(cfg: TrainConfig) -> VecEnv:
     """``make_env`` wrapped in VecMonitor (episode stats) and, with ``cfg.normalize``, VecNormalize."""
     env: VecEnv = VecMonitor(make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)))
     if cfg.normalize:
+        assert isinstance(env.observation_space, spaces.Dict)  # every task's
         keys = vector_keys(env.observation_space)
         env = VecNormalize(env, norm_obs=bool(keys), norm_obs_keys=keys or None, norm_reward=True, gamma=cfg.gamma)
     return env
@@ -64,7 +70,7 @@ RECURRENT_HIDDEN = 128
 """LSTM units of a ``--recurrent`` policy's actor (and, separately, its critic)."""
 
 
-def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
+def build_model(cfg: TrainConfig, env: VecEnv) -> OnPolicyAlgorithm:
     """SB3 PPO with the VisFly-style extractor and actor/critic 64-64, logging to the run folder.
 
     For ``algo="ppo"`` it is plain SB3 ``PPO``, which holds the policy, its optimizer and the
@@ -73,8 +79,15 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> PPO:
     or with ``cfg.overlap`` :class:`OverlappedPPO` (the next rollout collected while PPO learns).
     With ``cfg.recurrent`` it is sb3-contrib's ``RecurrentPPO`` (``MultiInputLstmPolicy``): the
     extractor, an LSTM of ``RECURRENT_HIDDEN`` units, the 64-64 heads.
+
+    Raises:
+        ConfigError: ``cfg`` is not resolved (:meth:`TrainConfig.resolved`).
     """
+    if cfg.lr is None or cfg.n_steps is None or cfg.batch_size is None:
+        raise ConfigError("build_model needs a resolved config (lr, n_steps, batch_size set): pass cfg.resolved()")
     policy, lstm = "MultiInputPolicy", {}
+    cls: type[OnPolicyAlgorithm]
+    extra: dict[str, Any]
     if cfg.recurrent:
         from sb3_contrib import RecurrentPPO
 
@@ -124,7 +137,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     if cfg.recurrent and cfg.overlap:
         print("--recurrent: RecurrentPPO collects and learns in turn; --overlap does not apply", flush=True)
         cfg = replace(cfg, overlap=False)
-    run_dir = Path(cfg.out)
+    assert cfg.out is not None and cfg.timesteps is not None  # resolved() and validate() set them
+    run_dir, timesteps = Path(cfg.out), cfg.timesteps
     tensor = cfg.algo == "ppo"
     env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)) if tensor else build_env(cfg)
     interrupted = False
@@ -132,20 +146,26 @@ def train(cfg: TrainConfig) -> TrainResult:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_config(cfg, run_dir)
         model = build_model(cfg, env)
-        success = SuccessCallback(run_dir, cfg.timesteps, verbose=int(cfg.progress))
+        success = SuccessCallback(run_dir, timesteps, verbose=int(cfg.progress))
         video = video_for(cfg)
+        learn: Callable[[], object]
         if tensor:
+            assert isinstance(model, PPO) and isinstance(env, DroneEnvBase)  # algo "ppo": plain PPO on the task's env
             trainer = TensorPPO(model, env, normalize=cfg.normalize, overlap=bool(cfg.overlap),
                                 update_threads=cfg.update_threads, cpu_cores=usable_cores())
             checkpoints = Checkpoints(run_dir / "checkpoints", cfg.checkpoint_every, trainer.save)
-            on_rollout_end = checkpoints if video is None else (  # noqa: E731
-                lambda n: (checkpoints(n), video.maybe_record(n, model.policy, trainer.norm)))
-            learn = lambda: trainer.learn(cfg.timesteps, success, on_rollout_end=on_rollout_end)  # noqa: E731
+
+            def on_rollout_end(n: int) -> None:
+                checkpoints(n)
+                if video is not None:
+                    video.maybe_record(n, model.policy, trainer.norm)
+
+            learn = lambda: trainer.learn(timesteps, success, on_rollout_end=on_rollout_end)  # noqa: E731
             save, phases = trainer.save, trainer.phase_seconds
         else:
             callbacks = [success, CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every)]
             callbacks += [VideoCallback(video)] if video is not None else []
-            learn = lambda: model.learn(cfg.timesteps, callback=callbacks, progress_bar=False)  # noqa: E731
+            learn = lambda: model.learn(timesteps, callback=callbacks, progress_bar=False)  # noqa: E731
             save, phases = (lambda path: save_checkpoint(model, path)), getattr(model, "phase_seconds", {})
         try:
             learn()
