@@ -88,7 +88,7 @@ def peer_physics(drones: int = 100, seconds: float = 2.0, *, seed: int = 0) -> d
         rng = np.random.default_rng(seed)
         ctrl_steps = max(1, round(seconds * CTRL_HZ))
         substeps = PYB_HZ // CTRL_HZ
-        state = [None] * drones
+        state: list[Any] = [None] * drones  # pybullet (untyped) position, orientation and velocity of each drone
         t0 = time.perf_counter()
         for _ in range(ctrl_steps):
             # Thrust scales with rpm^2; actions move the rpm by up to 5 % around hover.

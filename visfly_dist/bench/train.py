@@ -206,9 +206,12 @@ def watch_trainers(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
     saved = [(OnPolicyAlgorithm, "learn", learn), (OnPolicyAlgorithm, "collect_rollouts", collect), (PPO, "train", update),
              (TensorPPO, "collect", tensor_collect), (ActorCriticPolicy, "forward", forward),
              (ActorCriticPolicy, "predict_values", predict_values)]
-    OnPolicyAlgorithm.learn, OnPolicyAlgorithm.collect_rollouts, PPO.train = timed_learn, cpu_of(collect, True), timed_update
-    TensorPPO.collect = cpu_of(tensor_collect, False)
-    ActorCriticPolicy.forward, ActorCriticPolicy.predict_values = policy_cpu(forward), policy_cpu(predict_values)
+    patches = [(OnPolicyAlgorithm, "learn", timed_learn), (OnPolicyAlgorithm, "collect_rollouts", cpu_of(collect, True)),
+               (PPO, "train", timed_update), (TensorPPO, "collect", cpu_of(tensor_collect, False)),
+               (ActorCriticPolicy, "forward", policy_cpu(forward)),
+               (ActorCriticPolicy, "predict_values", policy_cpu(predict_values))]
+    for owner, name, replacement in patches:
+        setattr(owner, name, replacement)
     try:
         yield clock
     finally:
@@ -258,9 +261,9 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
     printed = io.StringIO()
     remote = None
     try:
-        if delay_ms is not None and count is None:
-            count = default_workers(task)
-        remote = None if delay_ms is None else RemoteWorkers(count, delay_ms, backend="raycast")
+        if delay_ms is not None:
+            count = default_workers(task) if count is None else count
+            remote = RemoteWorkers(count, delay_ms, backend="raycast")
         overrides = {} if remote is None else {"pool": {"listen": [f"tcp/127.0.0.1:{remote.listen_port}"],
                                                         "shared_memory": False, "min_workers": count}}
         cfg = TrainConfig(task=task, timesteps=timesteps, seed=seed, out=out_dir, checkpoint_every=0,
@@ -282,14 +285,15 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
         if remote is not None:
             remote.close()
         shutil.rmtree(out_dir, ignore_errors=True)
-    plan = result.config.host_plan
-    row = _row(task, delay_ms, count if remote is not None else result.config.workers, result, clock, before, after)
-    return {**row, "algo": result.config.algo, "device": result.config.device, "num_envs": result.config.num_envs,
-            "worker_threads": result.config.worker_threads, "overlap": bool(result.config.overlap),
-            "host_plan": plan.get("reasons", {})}
+    config = result.config
+    assert config is not None  # train() returns the config it trained with
+    row = _row(task, delay_ms, count if remote is not None else config.workers, result, clock, before, after)
+    return {**row, "algo": config.algo, "device": config.device, "num_envs": config.num_envs,
+            "worker_threads": config.worker_threads, "overlap": bool(config.overlap),
+            "host_plan": config.host_plan.get("reasons", {})}
 
 
-def _row(task: str, delay_ms: float | None, workers: int, result: Any, clock: LoopClock, before: CpuSnapshot,
+def _row(task: str, delay_ms: float | None, workers: int | None, result: Any, clock: LoopClock, before: CpuSnapshot,
          after: CpuSnapshot) -> dict[str, Any]:
     summary = dict(result.summary)
     if "rollout_s" in summary and "update_s" in summary:

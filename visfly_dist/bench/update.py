@@ -31,7 +31,7 @@ import os
 import subprocess
 import sys
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -63,6 +63,8 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
     import torch
     from gymnasium import spaces
     from stable_baselines3 import PPO
+    from stable_baselines3.common.buffers import DictRolloutBuffer
+    from stable_baselines3.common.vec_env import VecEnv
 
     from visfly_dist.training.config import TrainConfig
     from visfly_dist.training.extractors import visfly_policy_kwargs
@@ -72,10 +74,12 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
 
     keep_freed_memory()
     cfg = TrainConfig(task=task, algo="ppo").resolved()
+    assert cfg.n_steps is not None and cfg.batch_size is not None and cfg.num_envs is not None  # the task's defaults
     obs_space = observation_space(task)
     action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
     torch.manual_seed(seed)
-    model = PPO("MultiInputPolicy", None, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
+    # SB3 takes env=None (BaseAlgorithm does, and load() passes it); PPO's annotation leaves it out
+    model = PPO("MultiInputPolicy", cast(VecEnv, None), n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
                 policy_kwargs=visfly_policy_kwargs(cfg.backbone), seed=seed, device="cpu", verbose=0,
                 _init_setup_model=False)
     # no env: PPO only needs the spaces and the number of envs to build its policy and buffer
@@ -84,6 +88,7 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
     model.set_logger(_null_logger())
     rng = np.random.default_rng(seed)
     buf = model.rollout_buffer
+    assert isinstance(buf, DictRolloutBuffer)  # a Dict observation space
     for _ in range(cfg.n_steps):
         obs = {k: _sample(space, cfg.num_envs, rng) for k, space in obs_space.spaces.items()}
         with torch.no_grad():
@@ -213,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
                           f"(--skip-update needs them)")
     backbone_rows = [bench_backbone(b, image, args.backbone_batch, args.reps) for b in backbones for image in args.images]
     if args.skip_update:
-        result = {"machine": machine_info(), "rows": [], "backbones": backbone_rows, "load_average_end": load_average()}
+        result: dict[str, Any] = {"machine": machine_info(), "rows": [], "backbones": backbone_rows, "load_average_end": load_average()}
         print(report.text_table(backbone_rows))
         if args.json:
             report.write_json(result, args.json)
@@ -229,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         child = subprocess.run(command, env={**os.environ, "VISFLY_NATIVE_KERNELS": "0"}, capture_output=True, text=True,
                                check=True)
         rows += json.loads(child.stdout.strip().splitlines()[-1])
-    result: dict[str, Any] = {"machine": machine_info(), "rows": rows, "load_average_end": load_average()}
+    result = {"machine": machine_info(), "rows": rows, "load_average_end": load_average()}
     print(report.text_table(rows))
     if backbone_rows:
         result["backbones"] = backbone_rows
