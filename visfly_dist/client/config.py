@@ -23,7 +23,7 @@ from visfly_dist.protocol.cameras import CameraSpec
 
 STATE_NOISE_KEY = "state"
 
-_DYNAMICS_DEFAULTS = {f.name: f.default for f in fields(DynamicsConfig)}
+_DYNAMICS_DEFAULTS: dict[str, Any] = {f.name: f.default for f in fields(DynamicsConfig)}
 """Defaults of the dynamics settings the env shares, read from ``DynamicsConfig``: set there only."""
 
 

@@ -196,7 +196,9 @@ class TensorEnv:
 
     def get_failure(self) -> torch.Tensor:
         """``(N,)`` bool: the episode failed (default: collision, inside an obstacle, out of bounds)."""
-        return self.frame.collision | self.frame.inside | self.out_of_bounds()
+        frame = self.frame
+        assert frame is not None, "the task hooks run once the env has observed"
+        return frame.collision | frame.inside | self.out_of_bounds()
 
     def observation_space_dict(self) -> dict[str, spaces.Space]:
         """Observation spaces: ``state`` (13,) and one image entry per camera; tasks extend it."""
@@ -442,7 +444,7 @@ class TensorEnv:
         def rows(v: torch.Tensor) -> torch.Tensor:
             return v.index_select(0, ids)  # images: several times faster than v[ids]
 
-        pick = {k: rows(v) for k, v in result.info.items() if k != "terminal_observation"}
+        pick: dict[str, Any] = {k: rows(v) for k, v in result.info.items() if k != "terminal_observation"}
         pick["terminal_observation"] = {k: rows(v) for k, v in result.info["terminal_observation"].items()}
         return StepResult({k: rows(v) for k, v in result.observation.items()}, rows(result.reward),
                           rows(result.terminated), rows(result.truncated), pick), ids
@@ -532,15 +534,19 @@ class TensorEnv:
             self._store_prepared(obs, np.arange(len(missing)), missing)
         rows = self._frame(self._prepared_obs.take(idx_np))
         before = self.frame
-        self.frame = rows if observation is None else self.frame.scatter(idx, rows, self._image_buffers)
+        if observation is None or before is None:
+            self.frame = rows
+        else:
+            self.frame = before.scatter(idx, rows, self._image_buffers)
+        after = self.frame
         self._draw_next_starts(idx)
         fresh_obs = self._observation()
-        if observation is None:
+        if observation is None or before is None:
             return fresh_obs
         # An entry that is the frame's image before and after the reset already holds the old rows
         # outside ``mask`` (scatter wrote the new rows into a copy): no second select of every image.
         passed = {k for k, v in fresh_obs.items()
-                  if v is self.frame.images.get(k) and observation[k] is before.images.get(k)}
+                  if v is after.images.get(k) and observation[k] is before.images.get(k)}
         return {k: v if k in passed else torch.where(mask.reshape((-1,) + (1,) * (v.dim() - 1)), v, observation[k])
                 for k, v in fresh_obs.items()}
 

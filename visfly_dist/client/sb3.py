@@ -24,7 +24,7 @@ _QUIET_INFO = {"is_success": False, "collision": False, "out_of_bounds": False, 
 """The SB3 info of a row with no flag set (copied per row and step: SB3 wants fresh dicts)."""
 
 
-class SB3VecEnv(TensorEnv, VecEnv):
+class SB3VecEnv(TensorEnv, VecEnv):  # type: ignore[misc]  # spaces: Dict/Box here, Space in VecEnv
     """The tensor env as a Stable-Baselines3 ``VecEnv`` (see the module docstring)."""
 
     _pending_actions: torch.Tensor | None = None
@@ -40,7 +40,7 @@ class SB3VecEnv(TensorEnv, VecEnv):
         """Reset every agent (seeded by the last ``seed()`` call, if any); numpy observation.
 
         Groups still in flight (:meth:`send`) are taken in and dropped: their step never happened."""
-        seeds = list(self._seeds) if self._seeds[0] is not None else None
+        seeds = [int(s) for s in self._seeds if s is not None] if self._seeds[0] is not None else None
         self._reset_seeds()
         self._reset_options()
         obs = self.reset_tensor(seeds)
@@ -79,7 +79,7 @@ class SB3VecEnv(TensorEnv, VecEnv):
         flags = {k: info[k].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
         cut = truncated.cpu().numpy()
         done = (terminated | truncated).cpu().numpy()
-        infos = list(map(dict, itertools.repeat(_QUIET_INFO, len(done))))  # most rows: every flag False
+        infos: list[dict[str, Any]] = list(map(dict, itertools.repeat(_QUIET_INFO, len(done))))  # most rows: every flag False
         for i in np.flatnonzero(flags["success"] | flags["collision"] | flags["out_of_bounds"] | cut).tolist():
             infos[i].update({"is_success": bool(flags["success"][i]), "collision": bool(flags["collision"][i]),
                              "out_of_bounds": bool(flags["out_of_bounds"][i]), "TimeLimit.truncated": bool(cut[i])})

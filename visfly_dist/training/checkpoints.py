@@ -9,7 +9,7 @@ the whole wrapper; plain arrays are enough to rebuild it around a fresh env.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 import numpy as np
 from gymnasium import spaces
@@ -27,7 +27,37 @@ def norm_path(checkpoint: Path) -> Path:
     return checkpoint.with_name(checkpoint.name.removesuffix(".zip") + ".norm.npz")
 
 
-def save_normalization(venv: VecNormalize, path: Path) -> None:
+class Moments(Protocol):
+    """Running statistics as ``RunningMeanStd`` keeps them."""
+
+    @property
+    def mean(self) -> Any: ...
+    @property
+    def var(self) -> Any: ...
+    @property
+    def count(self) -> float: ...
+
+
+class NormalizationStatistics(Protocol):
+    """What :func:`save_normalization` reads: a ``VecNormalize``, or the tensor PPO's statistics."""
+
+    @property
+    def clip_obs(self) -> float: ...
+    @property
+    def clip_reward(self) -> float: ...
+    @property
+    def epsilon(self) -> float: ...
+    @property
+    def gamma(self) -> float: ...
+    @property
+    def norm_reward(self) -> bool: ...
+    @property
+    def ret_rms(self) -> Moments: ...
+    @property
+    def obs_rms(self) -> Any: ...  # key -> Moments (a Dict observation space)
+
+
+def save_normalization(venv: NormalizationStatistics, path: Path) -> None:
     """Write ``venv``'s running statistics to ``path`` (npz)."""
     arrays: dict[str, Any] = {  # arrays and numpy scalars (np.savez's stubs read a ** dict as its flags too)
         "clip_obs": np.float64(venv.clip_obs),

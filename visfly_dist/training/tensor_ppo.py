@@ -110,7 +110,7 @@ class Normalizer:
         self.keys = vector_keys(space) if enabled else []
         self.enabled = enabled
         self.gamma = gamma
-        self.obs_moments = {k: RunningMoments(space.spaces[k].shape, device) for k in self.keys}
+        self.obs_moments = {k: RunningMoments(tuple(space.spaces[k].shape or ()), device) for k in self.keys}
         self.ret_moments = RunningMoments((), device)
         self.returns = torch.zeros(num_envs, dtype=torch.float64, device=device)
 
@@ -165,7 +165,7 @@ class Rollout:
 
     def __init__(self, space: spaces.Dict, n_steps: int, num_envs: int, device: torch.device) -> None:
         shape = (n_steps, num_envs)
-        self.observations = {k: torch.zeros(shape + s.shape, dtype=_torch_dtype(s.dtype), device=device)
+        self.observations = {k: torch.zeros(shape + tuple(s.shape or ()), dtype=_torch_dtype(np.dtype(s.dtype)), device=device)
                              for k, s in space.spaces.items()}
         self.actions = torch.zeros(shape + (4,), device=device)
         self.log_probs = torch.zeros(shape, device=device)
@@ -285,7 +285,7 @@ class TensorPPO:
                     self._take(self.groups[0], t, self.env.step_tensor(actions))
             else:
                 self._collect_overlapped()
-            last_values = self.policy.predict_values(self._obs).flatten()
+            last_values = self.policy.predict_values(self._observation()).flatten()
         self.rollout.compute_gae(last_values, self.model.gamma, self.model.gae_lambda)
 
     def _collect_overlapped(self) -> None:
@@ -309,7 +309,8 @@ class TensorPPO:
     def _act(self, ids: torch.Tensor, t: int) -> torch.Tensor:
         """Sample actions for agents ``ids`` at rollout step ``t`` and store what PPO needs of them."""
         everyone = len(ids) == self.num_envs
-        obs = self._obs if everyone else {k: v[ids] for k, v in self._obs.items()}
+        current = self._observation()
+        obs = current if everyone else {k: v[ids] for k, v in current.items()}
         actions, values, log_probs = self.policy(obs)
         r = self.rollout
         rows = slice(None) if everyone else ids.to(self.device)
@@ -346,8 +347,9 @@ class TensorPPO:
         if everyone:
             self._obs = fresh
         else:
+            current = self._observation()
             for k, v in fresh.items():
-                self._obs[k][rows] = v
+                current[k][rows] = v
         if bool(done.any()):
             self._record_episodes(ended, truncated, info)
 
@@ -364,6 +366,11 @@ class TensorPPO:
                               "out_of_bounds": bool(flags["out_of_bounds"][j]), "lost": bool(flags["lost"][j]),
                               "swapped": bool(flags["swapped"][j]), "TimeLimit.truncated": bool(cut[j]),
                               "episode": {"r": float(returns[j]), "l": int(lengths[j])}})
+
+    def _observation(self) -> dict[str, torch.Tensor]:
+        """The normalised observation of every agent, on the device (there once ``learn`` reset the env)."""
+        assert self._obs is not None, "learn() resets the env before it collects"
+        return self._obs
 
     def _to_device(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         if self.device.type == "cpu":
@@ -383,7 +390,8 @@ class TensorPPO:
         flat = {k: v.reshape(size, *v.shape[2:]) for k, v in r.observations.items()}
         actions, values, log_probs = r.actions.reshape(size, -1), r.values.reshape(size), r.log_probs.reshape(size)
         advantages, returns = r.advantages.reshape(size), r.returns.reshape(size)
-        settings = UpdateSettings(clip_range=float(model.clip_range(1.0)), clip_range_vf=None,
+        clip = model.clip_range  # a schedule once SB3 set the model up
+        settings = UpdateSettings(clip_range=float(clip(1.0) if callable(clip) else clip), clip_range_vf=None,
                                   ent_coef=float(model.ent_coef), vf_coef=float(model.vf_coef),
                                   normalize_advantage=model.normalize_advantage)
         on_cpu = self.device.type == "cpu"
