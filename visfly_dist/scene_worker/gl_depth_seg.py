@@ -66,7 +66,7 @@ class _Geometry:
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray | None) -> None:
         instanced = ids is None
-        data = np.ascontiguousarray(vertices if instanced else np.concatenate([vertices, ids[:, None]], axis=1),
+        data = np.ascontiguousarray(vertices if ids is None else np.concatenate([vertices, ids[:, None]], axis=1),
                                     dtype=np.float32)
         stride = data.shape[1] * 4
         self.count = int(faces.size)

@@ -60,6 +60,7 @@ class Renderer(abc.ABC):
         self._closed = False
         self._placed_at: float | None = None
         self.moving = tuple(scene.moving_objects)   # scene order; looked up once (it is a scan of the objects)
+        self._motions = tuple(o.motion for o in self.moving if o.motion is not None)   # all of them: they move
 
     def render(self, poses: np.ndarray, show_drones: bool = False, time: float = 0.0) -> dict[str, np.ndarray]:
         """Render every camera of every drone.
@@ -82,7 +83,7 @@ class Renderer(abc.ABC):
         """Put the moving obstacles where they are at ``time`` (s); nothing to do in a static scene."""
         time = checked_time(time)
         if self.moving and self._placed_at != time:
-            self._move(np.stack([o.motion.position(time) for o in self.moving]))
+            self._move(np.stack([motion.position(time) for motion in self._motions]))
             self._placed_at = time
 
     def _move(self, translations: np.ndarray) -> None:
