@@ -10,7 +10,7 @@ way: ``render_base -> backends -> render_common`` (see that module's docstring f
 from __future__ import annotations
 
 import abc
-from typing import Sequence
+from typing import Sequence, overload
 
 import numpy as np
 
@@ -25,6 +25,14 @@ LIGHT_DIRECTION = tuple(np.array([0.4, 0.3, 0.85]) / np.linalg.norm([0.4, 0.3, 0
 """Unit vector from the scene towards the (directional) light, world frame."""
 AMBIENT = 0.4
 """Share of a surface's colour lit regardless of the light; the rest scales with |n . light|."""
+
+
+@overload
+def drone_segmentation_id(agent_index: int) -> int: ...
+
+
+@overload
+def drone_segmentation_id(agent_index: np.ndarray) -> np.ndarray: ...
 
 
 def drone_segmentation_id(agent_index: int | np.ndarray) -> int | np.ndarray:

@@ -109,7 +109,7 @@ class LegacyEglRenderer(Renderer):
 
     def _draw_rgb(self, cam: CameraSpec, pose: np.ndarray, centres: np.ndarray, others: np.ndarray) -> np.ndarray:
         """One RGB image ``(3, H, W)`` from pyrender."""
-        if self._rgb is None:
+        if self._rgb is None or self._rgb_scene is None:
             self._rgb_scene = self._build_rgb_scene()
             self._rgb = pyrender.Renderer(cam.width, cam.height)
         scene = self._rgb_scene
@@ -131,20 +131,19 @@ class LegacyEglRenderer(Renderer):
     def _build_rgb_scene(self) -> pyrender.Scene:
         scene = pyrender.Scene(bg_color=[*(np.asarray(SKY_RGB) / 255.0), 1.0], ambient_light=[AMBIENT] * 3)
         static = self.scene.static_objects
-        textured = [o.mesh for o in static if len(o.mesh.faces) and o.mesh.visual.kind == "texture"]
-        coloured = [o.mesh for o in static if len(o.mesh.faces) and o.mesh.visual.kind != "texture"]
+        textured = [o.mesh for o in static if len(o.mesh.faces) and _textured(o.mesh)]
+        coloured = [o.mesh for o in static if len(o.mesh.faces) and not _textured(o.mesh)]
         for obj in self.scene.moving_objects:   # one node each, posed per render
             mesh = obj.mesh
-            if mesh.visual.kind != "texture":
-                mesh = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-                mesh.visual.face_colors = face_rgb(obj.mesh)
+            if not _textured(mesh):
+                mesh = _coloured_mesh(mesh.vertices, mesh.faces, face_rgb(obj.mesh))
             self._rgb_moving.append(scene.add(pyrender.Mesh.from_trimesh(mesh, smooth=False)))
         for mesh in textured:
             scene.add(pyrender.Mesh.from_trimesh(mesh, smooth=False))
         if coloured:  # one node for every untextured object: pyrender's cost is per node
-            merged = trimesh.Trimesh(np.concatenate([m.triangles.reshape(-1, 3) for m in coloured]),
-                                     np.arange(3 * sum(len(m.faces) for m in coloured)).reshape(-1, 3), process=False)
-            merged.visual.face_colors = np.concatenate([face_rgb(m) for m in coloured])
+            merged = _coloured_mesh(np.concatenate([m.triangles.reshape(-1, 3) for m in coloured]),
+                                    np.arange(3 * sum(len(m.faces) for m in coloured)).reshape(-1, 3),
+                                    np.concatenate([face_rgb(m) for m in coloured]))
             scene.add(pyrender.Mesh.from_trimesh(merged, smooth=False))
         z = np.asarray(LIGHT_DIRECTION)  # a directional light shines along its node's -z
         x = np.cross([0.0, 1.0, 0.0], z)
@@ -157,3 +156,16 @@ class LegacyEglRenderer(Renderer):
                 self._rgb_cameras[c.name] = scene.add(pyrender.IntrinsicsCamera(
                     fx=c.focal_px, fy=c.focal_px, cx=0.5 * c.width, cy=0.5 * c.height, znear=c.near, zfar=c.far))
         return scene
+
+
+def _textured(mesh: trimesh.Trimesh) -> bool:
+    """Whether ``mesh`` is drawn with a texture (pyrender's own material), not face colours."""
+    return mesh.visual is not None and mesh.visual.kind == "texture"
+
+
+def _coloured_mesh(vertices: np.ndarray, faces: np.ndarray, face_colours: np.ndarray) -> trimesh.Trimesh:
+    """A new mesh (not processed) of ``faces``, each in its colour of ``face_colours``."""
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert isinstance(mesh.visual, trimesh.visual.ColorVisuals), "a mesh made without a visual has colours"
+    mesh.visual.face_colors = face_colours
+    return mesh
