@@ -251,8 +251,9 @@ class _Geometry:
     sphere of its objects (a moving object's in its local frame). A *closed* object is watertight with outward
     winding: seen from outside it, only its front faces can show, so its back faces may be culled.
 
-    ``indexed`` rows are ``position, id, mover`` per vertex and ``indices`` 3 per face; ``corners``
-    (RGB) are per face corner (:func:`_corner_arrays`); ``chunks`` rows are ``first face, end face,
+    ``indexed`` rows are ``position, id, mover`` per vertex and ``indices`` 3 per face; ``corners``,
+    ``texels`` and ``texture_info`` (RGB; empty without) are per face corner and per texture
+    (:func:`_corner_arrays`); ``chunks`` rows are ``first face, end face,
     centre xyz, radius, mover, closed, solid centre xyz, solid radius``.
     """
 
@@ -302,10 +303,12 @@ class _Geometry:
         self.order = np.concatenate(order) if order else np.zeros(0, np.int64)
         self.indices = np.ascontiguousarray(faces[self.order], np.uint32).ravel()
         self.chunks = np.array(chunks, np.float64).reshape(-1, 12)
-        self.corners, self.texels, self.texture_info = (None, None, None)
+        self.corners = np.zeros((0, 14), np.float32)
+        self.texels = np.zeros((0, 4), np.uint8)
+        self.texture_info: list[tuple[int, int, int]] = []
         if rgb:
-            self.corners, self.texels, self.texture_info = _corner_arrays(objects, movers, meshes)
-            self.corners = np.ascontiguousarray(self.corners.reshape(-1, 3, 14)[self.order].reshape(-1, 14))
+            corners, self.texels, self.texture_info = _corner_arrays(objects, movers, meshes)
+            self.corners = np.ascontiguousarray(corners.reshape(-1, 3, 14)[self.order].reshape(-1, 14))
 
 
 def _split(faces: np.ndarray) -> list[np.ndarray]:
@@ -319,12 +322,13 @@ def _object_chunks(faces: np.ndarray, owner: np.ndarray, centroids: np.ndarray) 
     chunks of its own, smaller ones share chunks with their neighbours in that order."""
     code = _morton(centroids)
     objects, inverse = np.unique(owner, return_inverse=True)
-    centres = np.stack([np.bincount(inverse, weights=centroids[:, k]) for k in range(3)], axis=1)
+    centres: np.ndarray = np.stack([np.bincount(inverse, weights=centroids[:, k]) for k in range(3)], axis=1)
     centres /= np.bincount(inverse)[:, None]
     rank = np.argsort(np.argsort(_morton(centres), kind="stable"), kind="stable")
     ordered = faces[np.lexsort((code, rank[inverse]))]
     bounds = np.flatnonzero(np.diff(rank[inverse][np.lexsort((code, rank[inverse]))])) + 1
-    out, current = [], []
+    out: list[np.ndarray] = []
+    current: list[np.ndarray] = []
     for group in np.split(ordered, bounds):
         if len(group) >= CHUNK_FACES // 2:
             out += _split(group)
@@ -423,6 +427,12 @@ class BatchEglRenderer(Renderer):
             self._states.pop(threading.get_ident(), None)
         else:
             self._states[threading.get_ident()] = state
+
+    def _built(self) -> dict:
+        """The GL objects of the calling thread's lane, which :meth:`_render_rows` built before drawing."""
+        s = self._gl
+        assert s is not None, "drawn in a lane before its GL objects were built"
+        return s
 
     @property
     def lanes(self) -> int:
@@ -554,7 +564,7 @@ class BatchEglRenderer(Renderer):
     def _atlas(self, width: int, height: int) -> None:
         """Make the atlas at least ``width x height`` (grown in steps; one attachment per kind in use)."""
         GL = _gl()
-        s = self._gl
+        s = self._built()
         have_w, have_h = s["size"]
         if width <= have_w and height <= have_h:
             return
@@ -621,9 +631,9 @@ class BatchEglRenderer(Renderer):
     def _render_rows(self, poses: np.ndarray, show_drones: bool, out: dict[str, np.ndarray], lo: int, hi: int) -> None:
         """Render the cameras of drones ``lo:hi`` (seeing every drone of ``poses``) in this thread's lane."""
         GL = _gl()
-        if self._gl is None:
-            self._gl = self._build()
         s = self._gl
+        if s is None:
+            s = self._gl = self._build()
         if s["moved"] != self._moved and len(self.moving):
             s["movers"].upload(np.concatenate([self._translations, np.zeros((len(self.moving), 1))], axis=1)
                                .astype(np.float32))
@@ -631,7 +641,9 @@ class BatchEglRenderer(Renderer):
         drones = show_drones and len(poses) > 1 and self.drone_radius > 0
         everyone, poses, n = poses, poses[lo:hi], hi - lo
         out = {name: image[lo:hi] for name, image in out.items()}
-        views, visible, drone_rows = [], [], []
+        views: list[np.ndarray] = []
+        visible: list[np.ndarray] | None = [] if self._indirect else None    # per camera: its chunks in view
+        drone_rows: list[np.ndarray | None] = []
         for cam in self.cameras:
             if cam.width > self._max_side or cam.height > self._max_side:
                 raise ConfigError(f"camera {cam.name!r} is {cam.width}x{cam.height}, larger than the egl atlas "
@@ -642,10 +654,13 @@ class BatchEglRenderer(Renderer):
             view[:, :3, :3] = np.swapaxes(gl_rot, 1, 2)               # world -> eye rotation
             view[:, :3, 3] = -np.einsum("aji,aj->ai", gl_rot, origins)
             views.append(view)
-            visible.append(self._chunks_in_view(cam, origins, rots) if self._indirect else None)
+            if visible is not None:
+                visible.append(self._chunks_in_view(cam, origins, rots))
             drone_rows.append(self._drone_instances(cam, lo, everyone, origins, rots) if drones else None)
         # Columns of tiles (camera, first agent, count), left to right; a new pass when the atlas is full.
-        passes, current, x = [], [], 0
+        passes: list[list[tuple[int, int, int, int]]] = []
+        current: list[tuple[int, int, int, int]] = []
+        x = 0
         for c, cam in enumerate(self.cameras):    # about square: float32 interpolation is finer near the origin
             per_column = max(1, min(n, self._max_side // cam.height, int(np.ceil(np.sqrt(n * cam.width / cam.height)))))
             for a in range(0, n, per_column):
@@ -665,7 +680,7 @@ class BatchEglRenderer(Renderer):
         frustum), 1 in view, 2 in view and one-sided (a closed solid whose enclosing sphere is clear
         of the camera's near rectangle: every pixel's ray starts outside the solid, so it can only
         meet a front face first)."""
-        chunks = self._gl["chunks"]
+        chunks = self._built()["chunks"]
         centres, solids = chunks[:, 2:5].copy(), chunks[:, 8:11].copy()
         movers = chunks[:, 6].astype(np.int64)
         if len(self.moving):
@@ -695,11 +710,11 @@ class BatchEglRenderer(Renderer):
         return rows
 
     def _draw_pass(self, columns: list[tuple[int, int, int, int]], views: list[np.ndarray],
-                   visible: list[np.ndarray | None], drone_rows: list[np.ndarray | None],
+                   visible: list[np.ndarray] | None, drone_rows: list[np.ndarray | None],
                    out: dict[str, np.ndarray]) -> None:
         """Draw one atlas of columns ``(camera, first agent, count, x)`` and read each column back."""
         GL = _gl()
-        s = self._gl
+        s = self._built()
         width = sum(self.cameras[c].width for c, _, _, _ in columns)
         height = max(self.cameras[c].height * count for c, _, count, _ in columns)
         self._atlas(width, height)
@@ -720,7 +735,7 @@ class BatchEglRenderer(Renderer):
             count = sum(col[2] for col in mine)
             groups.append((c, mine, tile, mine[0][1], count))
             tile += count
-        draws = self._commands(groups, tiles, visible) if self._indirect else None
+        draws = self._commands(groups, tiles, visible) if visible is not None else None
         if draws is None:
             s["tiles"].upload(tiles)
         GL.glViewport(0, 0, atlas_w, atlas_h)
@@ -779,7 +794,8 @@ class BatchEglRenderer(Renderer):
         tiles, instanced over those tiles (the instances' attributes are the tiles' rows, copied per
         (chunk, tile) pair), apart for two-sided and one-sided (back faces culled) chunks. Per camera
         ``((byte offset, draws) two-sided, (byte offset, draws) one-sided)`` in the command buffer."""
-        chunks = self._gl["chunks"]
+        s = self._built()
+        chunks = s["chunks"]
         parts, pairs, spans, total, instances = [], [], [], 0, 0
         for c, _, first, agent0, count in groups:
             seen = visible[c][agent0:agent0 + count].T                    # (K, tiles of this camera)
@@ -799,8 +815,8 @@ class BatchEglRenderer(Renderer):
                 spans_c.append((total, len(rows)))
                 total += rows.nbytes
             spans.append(tuple(spans_c))
-        self._gl["commands"].upload(np.concatenate(parts))
-        self._gl["tiles"].upload(np.concatenate(pairs))
+        s["commands"].upload(np.concatenate(parts))
+        s["tiles"].upload(np.concatenate(pairs))
         return spans
 
     def _draw_camera(self, cam: CameraSpec, first: int, count: int, atlas_w: int, atlas_h: int,
@@ -808,7 +824,7 @@ class BatchEglRenderer(Renderer):
         """Draw the scene and the drones seen into one camera's ``count`` tiles of the pass (first
         tile ``first``): indirect draws of the chunks in view, or (no culling) everything instanced."""
         GL = _gl()
-        s = self._gl
+        s = self._built()
         program, u = s["programs"][cam.kind]
         GL.glUseProgram(program)
         f, near, far = cam.focal_px, cam.near, cam.far
