@@ -216,9 +216,10 @@ def keep_freed_heap() -> bool:
     """Have glibc keep up to :data:`HEAP_KEPT_BYTES` of freed heap memory for reuse (process-wide).
 
     llvmpipe bins every frame's triangles in fresh heap blocks (about 15 MB for 100 cameras of 64x64)
-    and frees them once it has rasterised; by default glibc hands that memory back to the kernel
-    at once, so the next frame faults it in again, page by page: a fifth of the CPU time of a
-    render (kernel time), and lock contention between contexts drawing at once. Setting the trim
+    and frees them once it has rasterised. Unless its adaptive thresholds have grown (big blocks
+    freed earlier in the process), glibc hands that memory back to the kernel at once and the next
+    frame faults it in again, page by page: in a fresh process a fifth of a render's CPU time (in
+    the kernel), and lock contention between contexts drawing at once. Setting the trim
     threshold turns glibc's adaptive mapping threshold off, so that one is set where the adaptive
     one would end (:data:`HEAP_MMAP_BYTES`). Returns whether the settings took (False off glibc).
     """
