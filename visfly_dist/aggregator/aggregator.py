@@ -2,7 +2,8 @@
 
 It ties the parts together: the slot table (:mod:`.slots`, pure placement plans), the worker pool
 (:mod:`.pool`, the only I/O), the step plan (:mod:`.step_plan`, which scene entries each worker's
-request holds), the assembler (:mod:`.assembler`, replies into buffers), scene moves
+request holds), the assembler (:mod:`.assembler`, replies into buffers, each agent's last good
+data), the input checks (:mod:`.inputs`), scene moves
 (:mod:`.scene_moves`, loads, switches and unloads in the background) and spawn pools
 (:mod:`.spawn_pools`, start positions drawn locally). Workers on this host write their images into
 image segments (:mod:`.image_shm`, with shared memory on) instead of the reply.
@@ -40,15 +41,16 @@ from typing import Any, Sequence
 import numpy as np
 
 from visfly_dist.aggregator.assembler import (
+    LastGood,
     Observation,
-    blank_observation,
-    copy_rows,
-    empty_observation,
+    reply_rows,
     scatter_reply,
+    step_buffers,
 )
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
 from visfly_dist.aggregator.image_shm import ImageSegments, StepImages
+from visfly_dist.aggregator.inputs import agent_index, increasing, pose_rows, setting_problems
 from visfly_dist.aggregator.pool import BatchTimings, Pending, Reply, WorkerPool
 from visfly_dist.aggregator.scene_moves import LoadJob, PendingSwitch, ReconcileJob, SceneMoves, UnloadJob
 from visfly_dist.aggregator.slots import SlotTable
@@ -63,45 +65,9 @@ log = logging.getLogger(__name__)
 __all__ = ["Aggregator", "Observation", "StepTicket"]
 
 
-def _increasing(agents: np.ndarray) -> bool:
-    return len(agents) < 2 or bool((agents[1:] > agents[:-1]).all())
-
-
-def _observation(cameras: Sequence[CameraSpec], n: int, images: dict[str, np.ndarray] | None) -> Observation:
-    """Buffers for ``n`` rows: the step segment's ``images`` if given, else fresh arrays."""
-    obs = empty_observation(cameras, n)
-    if images is not None:
-        obs.images = images
-    return obs
-
-
-def _reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:
-    """The per-agent arrays of a step reply (images per camera), cut to ``rows``."""
-    return {k: (v[rows] if k != "images" else {c: img[rows] for c, img in v.items()})
-            for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
-
-
 def is_unknown_scene(err: RemoteError) -> bool:
     """The worker does not hold a scene key we sent: it restarted since the scene was loaded."""
     return err.code == ErrorCode.UNKNOWN_SCENE
-
-
-def _step_timings(batch: BatchTimings, workers: list[dict], assemble_s: float, total_s: float) -> dict[str, float]:
-    """A step's ``obs.timings``: ours, the slowest worker's own stages, and the transport in between."""
-    out = {"fanout_s": batch.fanout_s, "wait_s": batch.wait_s, "decode_s": batch.decode_s,
-           "assemble_s": assemble_s, **batch.extra}
-    own = set(out)
-    worker_total = 0.0
-    for wt in workers:
-        stages = {k: float(v) for k, v in wt.items() if isinstance(v, (int, float)) and k != "total_s"}
-        for stage, seconds in stages.items():
-            name = f"worker_{stage}" if stage in own else stage  # the worker's decode_s is not ours
-            out[name] = max(out.get(name, 0.0), seconds)
-        worker_total = max(worker_total, float(wt.get("total_s", sum(stages.values()))))
-    out["worker_total_s"] = worker_total
-    out["transport_s"] = max(0.0, batch.fanout_s + batch.wait_s - worker_total)
-    out["total_s"] = total_s
-    return out
 
 
 @dataclass
@@ -151,16 +117,8 @@ class Aggregator:
     def __init__(self, pool: PoolConfig, scenes: SceneSetConfig, cameras: Sequence[CameraSpec],
                  drone_radius: float = 0.1, multi_agent: bool = False, search_radius: float = 5.0,
                  seed: int = 0) -> None:
-        problems = pool.problems() + scenes.problems()
         cameras = tuple(cameras)
-        if not cameras or not all(isinstance(c, CameraSpec) for c in cameras):
-            problems.append(f"cameras={cameras!r} must be a non-empty sequence of CameraSpec")
-        elif len({c.name for c in cameras}) != len(cameras):
-            problems.append(f"camera names {[c.name for c in cameras]} must be unique")
-        if not 0 <= float(drone_radius) <= 10:
-            problems.append(f"drone_radius={drone_radius!r} must be in [0, 10] m")
-        if not 0 < float(search_radius) <= 1e4:
-            problems.append(f"search_radius={search_radius!r} must be in (0, 1e4] m")
+        problems = pool.problems() + scenes.problems() + setting_problems(cameras, drone_radius, search_radius)
         if problems:
             raise ConfigError("invalid aggregator configuration: " + "; ".join(problems))
         self.pool_config = pool
@@ -176,8 +134,7 @@ class Aggregator:
         self.num_agents = scenes.num_agents
         self.table = SlotTable(self.dataset.take(scenes.num_scenes), self.agents_per_scene)
         self.agent_scene = self.table.agent_scene
-        self._last = blank_observation(cameras, self.num_agents, self.search_radius)
-        self._last_private = True  # False while _last is an observation handed out by collect()
+        self._last = LastGood(cameras, self.num_agents, self.search_radius)
         self._background: list[Job] = []
         self._plans = StepPlans(self.table)
         self._settled: tuple[int, tuple] | None = None  # (table revision, live generations) of a pass with nothing to do
@@ -262,25 +219,16 @@ class Aggregator:
 
     def agent_bounds(self) -> np.ndarray:
         """``(N, 2, 3)`` float64 flight box of the scene of each agent's running episode."""
-        bounds = np.stack([s.bounds for s in self.table.slots]).astype(np.float64)[self.agent_scene]
-        for agent in np.flatnonzero(self.table.in_incoming).tolist():
-            bounds[agent] = self.table.scene_of(agent)[3]
-        return bounds
+        return self.table.agent_bounds()
 
     def agent_metadata(self, agent: int) -> dict[str, Any]:
         """:meth:`scene_metadata` of the scene agent ``agent``'s running episode is in (while a swap
         takes its slot over, the old or the incoming one)."""
-        _, _, source, _, metadata = self.table.scene_of(agent)
-        meta = dict(metadata)
-        meta.setdefault("source", source)
-        return meta
+        return self.table.agent_metadata(agent)
 
     def agent_sources(self) -> list[str]:
         """The source of the scene of each agent's running episode."""
-        sources = [self.table.slots[slot].source for slot in self.agent_scene.tolist()]
-        for agent in np.flatnonzero(self.table.in_incoming).tolist():
-            sources[agent] = self.table.scene_of(agent)[2]
-        return sources
+        return self.table.agent_sources()
 
     def scene_metadata(self, slot: int) -> dict[str, Any]:
         """The metadata the worker reported for ``slot``'s scene, plus its ``source``."""
@@ -340,17 +288,17 @@ class Aggregator:
         """
         self._require_started()
         t_start = time.perf_counter()
-        agents = self._agent_index(agents)
-        rows = self._pose_rows(poses, agents)
-        spawn_agents = self._agent_index(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
-        spawn_rows = self._pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents)
+        agents = self._agents(agents)
+        rows = pose_rows(poses, agents, self.num_agents)
+        spawn_agents = self._agents(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
+        spawn_rows = pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents, self.num_agents)
         self._maintain()
         obs_plan = self._plans.get(agents)
         spawn_plan = plan_entries(self.table, spawn_agents, next_episode=True)
         workers = sorted(set(obs_plan) | set(spawn_plan))
         segments, step = self._images, self._step_images(workers, agents, spawn_agents)
-        ticket = StepTicket(agents, spawn_agents, _observation(self.cameras, len(agents), None if step is None else step.obs),
-                            _observation(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
+        ticket = StepTicket(agents, spawn_agents, step_buffers(self.cameras, len(agents), None if step is None else step.obs),
+                            step_buffers(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
                             t_start, step)
         none = WorkerEntries()
         requests, parts = [], []
@@ -374,7 +322,7 @@ class Aggregator:
     def _step_images(self, workers: Sequence[str], agents: np.ndarray, spawn_agents: np.ndarray) -> StepImages | None:
         """The image segment of a step, when its rows can be laid out in observation order (agents
         in increasing order, as the env always asks): then each entry's rows are one run."""
-        if self._images is None or not workers or not (_increasing(agents) and _increasing(spawn_agents)):
+        if self._images is None or not workers or not (increasing(agents) and increasing(spawn_agents)):
             return None
         return self._images.offer([(w, self._pool.generation(w)) for w in workers], len(agents), len(spawn_agents))
 
@@ -416,23 +364,22 @@ class Aggregator:
             message = reply.message
             n_obs = len(part.obs_rows)
             worker_timings.append(dict(message.get("timings", {})))
-            scatter_reply(ticket.obs, part.obs_rows, _reply_rows(message, slice(None, n_obs)), self.cameras,
+            scatter_reply(ticket.obs, part.obs_rows, reply_rows(message, slice(None, n_obs)), self.cameras,
                           reply.worker_id, in_place)
             if len(part.spawn_rows):
-                scatter_reply(ticket.spawn_obs, part.spawn_rows, _reply_rows(message, slice(n_obs, None)), self.cameras,
+                scatter_reply(ticket.spawn_obs, part.spawn_rows, reply_rows(message, slice(n_obs, None)), self.cameras,
                               reply.worker_id, in_place)
         if segments is not None and step is not None:
             self._release_images(ticket, segments, step, failed)
         stale = np.flatnonzero(ticket.obs.lost)
         if len(stale):
-            copy_rows(ticket.obs, stale, self._last, ticket.agents[stale])
+            self._last.fill(ticket.obs, stale, ticket.agents[stale])
         fresh = np.flatnonzero(~ticket.obs.lost)
-        self._remember(ticket.obs, fresh, ticket.agents[fresh])
+        self._last.remember(ticket.obs, fresh, ticket.agents[fresh])
         assemble_s = time.perf_counter() - t0
         self._moves.note_collect()
         self._apply_background()
-        ticket.obs.timings = _step_timings(ticket.timings, worker_timings, assemble_s,
-                                           time.perf_counter() - ticket.started)
+        ticket.obs.timings = ticket.timings.step_report(worker_timings, assemble_s, time.perf_counter() - ticket.started)
         return ticket.obs, ticket.spawn_obs
 
     def _release_images(self, ticket: StepTicket, segments: ImageSegments, step: StepImages, failed: bool) -> None:
@@ -449,25 +396,6 @@ class Aggregator:
                 self._handle_failure(Reply(part.pending.worker_id, failure=(
                     f"image segment {step.segment.name} was written over after its images were read")), part.slots)
 
-    def _remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
-        """Keep the fresh rows as the agents' last good data.
-
-        A full observation is kept as it is (no copy). A partial one is written into a private copy,
-        never into arrays already handed out to a caller.
-        """
-        if len(agents) == self.num_agents and np.array_equal(agents, np.arange(self.num_agents)):
-            self._last, self._last_private = obs, False
-            return
-        if not len(rows):
-            return
-        if not self._last_private:
-            self._last, self._last_private = self._last.take(np.arange(self.num_agents)), True
-        last = self._last
-        for name, image in last.images.items():
-            image[agents] = obs.images[name][rows]
-        for key in ("collision", "inside", "nearest", "distance"):
-            getattr(last, key)[agents] = getattr(obs, key)[rows]
-
     # ----- spawn draws -----------------------------------------------------------------------
 
     def sample_spawn(self, agents: np.ndarray, distribution: str, a: Sequence[float], b: Sequence[float],
@@ -482,7 +410,7 @@ class Aggregator:
         Only the very first draw from a scene waits for its pool.
         """
         self._require_started()
-        agents = self._agent_index(agents)
+        agents = self._agents(agents)
         spec = spawn_spec(distribution, a, b, clearance)
         slots = sorted({int(s) for s in self.agent_scene[agents]})  # each agent's next episode starts in its slot's
         missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]  # next scene (an armed swap's)
@@ -502,7 +430,7 @@ class Aggregator:
         """Restart the spawn draws of ``agents`` (default: all): agent ``agents[i]`` draws from
         ``seeds[i]``; an int ``seed`` gives agent ``a`` the seed ``seed + a`` (as Gymnasium and SB3 seed
         sub-envs). The per-scene pools stay as they are."""
-        self._streams.reseed(self._agent_index(agents), seeds)
+        self._streams.reseed(self._agents(agents), seeds)
 
     def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
         """The pool that next episodes in ``slot`` start from: its armed swap's scene, else its own."""
@@ -555,7 +483,7 @@ class Aggregator:
         agent moves into it at its next episode end: no running episode changes scene.
         """
         self._require_started()
-        agents = self._agent_index(agents)
+        agents = self._agents(agents)
         moved = self._moves.take_over(agents)
         every = self.scene_config.swap_every_resets
         if every == 0 or len(agents) == 0 or not count:
@@ -727,35 +655,5 @@ class Aggregator:
             raise ConfigError("call Aggregator.start() (or use it as a context manager) before this; "
                               + ("it was closed" if self._closed else "it was not started"))
 
-    def _agent_index(self, agents: np.ndarray | Sequence[int] | None) -> np.ndarray:
-        if agents is None:
-            return np.arange(self.num_agents, dtype=np.int64)
-        idx = np.asarray(agents)
-        if idx.dtype == bool:
-            if idx.shape != (self.num_agents,):
-                raise ConfigError(f"agent mask of shape {idx.shape} must be ({self.num_agents},)")
-            return np.flatnonzero(idx)
-        if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer) and idx.size:
-            raise ConfigError(f"agents must be a 1-D array of agent indices, got shape {idx.shape} dtype {idx.dtype}")
-        idx = idx.astype(np.int64)
-        if idx.size and (idx.min() < 0 or idx.max() >= self.num_agents):
-            raise ConfigError(f"agent indices must be in [0, {self.num_agents}), got {idx.min()}..{idx.max()}")
-        return idx
-
-    def _pose_rows(self, poses: np.ndarray, agents: np.ndarray) -> np.ndarray:
-        poses = np.asarray(poses)
-        if poses.ndim != 2 or poses.shape[1] != 7 or poses.shape[0] not in (self.num_agents, len(agents)):
-            raise ConfigError(f"poses of shape {poses.shape} must be ({self.num_agents}, 7) or ({len(agents)}, 7): "
-                              "rows [x, y, z, qw, qx, qy, qz]")
-        rows = poses[agents] if poses.shape[0] == self.num_agents and len(agents) != self.num_agents else poses
-        rows = np.asarray(rows, dtype=np.float32)
-        if not np.isfinite(rows).all():
-            bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
-            raise ConfigError(f"poses of agents {agents[bad][:10].tolist()} are not finite")
-        norms = np.sqrt(np.einsum("ij,ij->i", rows[:, 3:], rows[:, 3:]))
-        if len(norms) and norms.min() < 1e-6:
-            raise ConfigError("poses hold a zero quaternion; quaternions are wxyz and must be unit")
-        if len(norms) and np.abs(norms - 1).max() > 1e-4:
-            rows = rows.copy()
-            rows[:, 3:] /= norms[:, None]
-        return rows
+    def _agents(self, agents: np.ndarray | Sequence[int] | None) -> np.ndarray:
+        return agent_index(agents, self.num_agents)

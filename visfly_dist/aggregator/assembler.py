@@ -97,3 +97,49 @@ def copy_rows(out: Observation, rows: np.ndarray, source: Observation, source_ro
     for key in QUERY_FIELDS:
         getattr(out, key)[rows] = getattr(source, key)[source_rows]
     out.lost[rows] = True
+
+
+def step_buffers(cameras: Sequence[CameraSpec], n: int, images: dict[str, np.ndarray] | None) -> Observation:
+    """Buffers for ``n`` rows: the step segment's ``images`` if given, else fresh arrays."""
+    obs = empty_observation(cameras, n)
+    if images is not None:
+        obs.images = images
+    return obs
+
+
+def reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:
+    """The per-agent arrays of a step reply (images per camera), cut to ``rows``."""
+    return {k: (v[rows] if k != "images" else {c: img[rows] for c, img in v.items()})
+            for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
+
+
+class LastGood:
+    """Each agent's last good data: what a lost agent is given (blank until it was served once).
+
+    A full observation is kept as it is (no copy). A partial one is written into a private copy,
+    never into arrays already handed out to a caller.
+    """
+
+    def __init__(self, cameras: Sequence[CameraSpec], num_agents: int, search_radius: float) -> None:
+        self.num_agents = num_agents
+        self.obs = blank_observation(cameras, num_agents, search_radius)
+        self._private = True  # False while obs is an observation handed out by collect()
+
+    def fill(self, out: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
+        """Write ``agents``' last good data into ``out``'s ``rows`` (marked lost)."""
+        copy_rows(out, rows, self.obs, agents)
+
+    def remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
+        """Keep ``obs``' fresh ``rows`` as the last good data of ``agents``."""
+        if len(agents) == self.num_agents and np.array_equal(agents, np.arange(self.num_agents)):
+            self.obs, self._private = obs, False
+            return
+        if not len(rows):
+            return
+        if not self._private:
+            self.obs, self._private = self.obs.take(np.arange(self.num_agents)), True
+        last = self.obs
+        for name, image in last.images.items():
+            image[agents] = obs.images[name][rows]
+        for key in QUERY_FIELDS:
+            getattr(last, key)[agents] = getattr(obs, key)[rows]

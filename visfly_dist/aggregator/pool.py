@@ -135,6 +135,24 @@ class BatchTimings:
     bytes_in: int = 0
     extra: dict[str, float] = field(default_factory=dict)
 
+    def step_report(self, workers: list[dict], assemble_s: float, total_s: float) -> dict[str, float]:
+        """A step's ``obs.timings``: ours, the slowest worker's own stages (``workers``: each reply's
+        ``timings``), and the transport in between."""
+        out = {"fanout_s": self.fanout_s, "wait_s": self.wait_s, "decode_s": self.decode_s,
+               "assemble_s": assemble_s, **self.extra}
+        own = set(out)
+        worker_total = 0.0
+        for wt in workers:
+            stages = {k: float(v) for k, v in wt.items() if isinstance(v, (int, float)) and k != "total_s"}
+            for stage, seconds in stages.items():
+                name = f"worker_{stage}" if stage in own else stage  # the worker's decode_s is not ours
+                out[name] = max(out.get(name, 0.0), seconds)
+            worker_total = max(worker_total, float(wt.get("total_s", sum(stages.values()))))
+        out["worker_total_s"] = worker_total
+        out["transport_s"] = max(0.0, self.fanout_s + self.wait_s - worker_total)
+        out["total_s"] = total_s
+        return out
+
 
 class WorkerPool:
     """Live workers of one run, and the one place that talks to them."""

@@ -210,6 +210,27 @@ class SlotTable:
             return m.worker, m.key, m.source, s.incoming.bounds, s.incoming.metadata
         return s.worker, s.key, s.source, s.bounds, s.metadata
 
+    def agent_bounds(self) -> np.ndarray:
+        """``(N, 2, 3)`` float64 flight box of the scene of each agent's running episode."""
+        bounds = np.stack([s.bounds for s in self.slots]).astype(np.float64)[self.agent_scene]
+        for agent in np.flatnonzero(self.in_incoming).tolist():
+            bounds[agent] = self.scene_of(agent)[3]
+        return bounds
+
+    def agent_metadata(self, agent: int) -> dict[str, Any]:
+        """The metadata of the scene of agent ``agent``'s running episode, plus its ``source``."""
+        _, _, source, _, metadata = self.scene_of(agent)
+        meta = dict(metadata)
+        meta.setdefault("source", source)
+        return meta
+
+    def agent_sources(self) -> list[str]:
+        """The source of the scene of each agent's running episode."""
+        sources = [self.slots[slot].source for slot in self.agent_scene.tolist()]
+        for agent in np.flatnonzero(self.in_incoming).tolist():
+            sources[agent] = self.scene_of(agent)[2]
+        return sources
+
     def _move(self, slot: Slot, worker: str, source: str, reason: str, generations: dict[str, int]) -> Move:
         return Move(worker, f"s{slot.index}v{slot.version + 1}", source, reason, generations.get(worker, 0))
 
