@@ -440,7 +440,7 @@ class BatchEglRenderer(Renderer):
         argument, else ``VISFLY_EGL_LANES``, else one per core this process may use (at most
         ``MAX_DEFAULT_LANES``) on a CPU rasteriser and 1 on a GPU. With llvmpipe a context's
         vertex and triangle set-up runs on its drawing thread only (module docstring); on the 2-core
-        machine of BENCHMARKS.md two lanes took a 100-camera 64x64 depth call from 43 to 32 ms for 5% more CPU."""
+        machine of BENCHMARKS.md two lanes took a 100-camera 64x64 depth call from 40 to 29 ms for 4% more CPU."""
         if self._lanes_asked is not None:
             return self._lanes_asked
         value = os.environ.get("VISFLY_EGL_LANES", "").strip()
