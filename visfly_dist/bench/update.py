@@ -74,7 +74,8 @@ def bench_update(task: str = "navigation", threads: int = 1, reps: int = 3, seed
 
     keep_freed_memory()
     cfg = TrainConfig(task=task, algo="ppo").resolved()
-    assert cfg.n_steps is not None and cfg.batch_size is not None and cfg.num_envs is not None  # the task's defaults
+    assert (cfg.n_steps is not None and cfg.batch_size is not None and cfg.num_envs is not None
+            and cfg.n_epochs is not None)  # the task's defaults
     obs_space = observation_space(task)
     action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
     torch.manual_seed(seed)

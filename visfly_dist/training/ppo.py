@@ -83,8 +83,9 @@ def build_model(cfg: TrainConfig, env: VecEnv) -> OnPolicyAlgorithm:
     Raises:
         ConfigError: ``cfg`` is not resolved (:meth:`TrainConfig.resolved`).
     """
-    if cfg.lr is None or cfg.n_steps is None or cfg.batch_size is None:
-        raise ConfigError("build_model needs a resolved config (lr, n_steps, batch_size set): pass cfg.resolved()")
+    if cfg.lr is None or cfg.n_steps is None or cfg.batch_size is None or cfg.n_epochs is None:
+        raise ConfigError("build_model needs a resolved config (lr, n_steps, batch_size, n_epochs set): "
+                          "pass cfg.resolved()")
     policy, lstm = "MultiInputPolicy", {}
     cls: type[OnPolicyAlgorithm]
     extra: dict[str, Any]

@@ -117,7 +117,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
     cfg = replace(cfg, algo="shac", device=check_device(cfg.device)).resolved().validate()
     # resolved() fills these in and validate() checks them
     assert (cfg.out is not None and cfg.timesteps is not None and cfg.horizon is not None and cfg.lr is not None
-            and cfg.batch_size is not None)
+            and cfg.batch_size is not None and cfg.n_epochs is not None)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)

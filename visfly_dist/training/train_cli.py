@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "across them (default: every CPU or 1, whichever the updates are timed faster with)")
     parser.add_argument("--n-steps", type=int, help="rollout steps per env between updates")
     parser.add_argument("--batch-size", type=int, help="PPO minibatch size")
-    parser.add_argument("--n-epochs", type=int, default=5, help="passes over each rollout (default 5)")
+    parser.add_argument("--n-epochs", type=int, default=None,
+                        help="passes over each rollout (default: the task's; 5, navigation 3)")
     parser.add_argument("--lr", type=float, help="learning rate (default 3e-4; per task for bptt/shac)")
     parser.add_argument("--gamma", type=float, default=0.99, help="discount (default 0.99)")
     parser.add_argument("--ent-coef", type=float, default=0.0, help="entropy bonus (default 0)")
