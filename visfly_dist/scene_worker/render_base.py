@@ -177,8 +177,8 @@ def choose_backend(requested: str, cameras: Sequence[CameraSpec]) -> tuple[str, 
     256     2.4 ms          10.6 ms    3.0 ms
     ======  ==============  =========  ===============
 
-    (egl there is the per-camera renderer before issue 23; the batch renderer costs 1.6x less CPU
-    per depth frame on llvmpipe at 64x64, still about 3x the native tracer: BENCHMARKS.md.) So on a GPU: native up to
+    (egl there is the per-camera renderer before issue 23; the batch renderer takes about half its
+    CPU per depth frame on llvmpipe at 64x64, still more than the native tracer: BENCHMARKS.md.) So on a GPU: native up to
     ``NATIVE_RAYCAST_MAX_PIXELS`` (256x256), embreex up to ``RAYCAST_MAX_PIXELS`` (128x128); GPU
     rates are not measured yet, so these CPU-derived limits are kept there.
 
