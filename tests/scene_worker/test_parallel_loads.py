@@ -87,17 +87,22 @@ def _assert_is(reply: dict, key: str, source: str, scene_root) -> None:
     assert reply["metadata"]["num_stones"] == expected.metadata["num_stones"]
 
 
+def _assert_all_loaded(session, proc, pending, sources, scene_root) -> None:
+    """Every load of the burst answered with its own scene, and the worker holds exactly those."""
+    for key, source in sources.items():
+        ok, reply = _answer(pending[key])
+        assert ok, reply
+        _assert_is(reply, key, source, scene_root)
+    ok, health = call(session, proc.rpc_key, Health().to_message())
+    assert health["scenes"] == sorted(sources) and health["loading"] == []
+
+
 def test_a_burst_of_loads_gets_one_correct_reply_each_and_generates_in_children(worker_factory, scene_root):
     proc = worker_factory(RUN, worker_id="burst", extra_args=THREADS)
     sources = {f"k{i}": _spec(i) for i in range(BURST)}
     with client_session(proc.endpoint) as session:
         pending = _burst(session, proc.rpc_key, sources)
-        for key, source in sources.items():
-            ok, reply = _answer(pending[key])
-            assert ok, reply
-            _assert_is(reply, key, source, scene_root)
-        ok, health = call(session, proc.rpc_key, Health().to_message())
-        assert health["scenes"] == sorted(sources) and health["loading"] == []
+        _assert_all_loaded(session, proc, pending, sources, scene_root)
         assert _generators(proc.pid), "a burst of generated loads should have started generator processes"
         # The children stay until the first step; once they are ready, loads are generated there.
         extra: list[str] = []
@@ -200,12 +205,7 @@ def test_a_generator_process_that_dies_loses_no_load(worker_factory, scene_root)
         pending = _burst(session, proc.rpc_key, sources)
         assert wait_for(lambda: bool(_generators(proc.pid)), timeout=30.0)
         os.kill(_generators(proc.pid)[0], signal.SIGKILL)
-        for key, source in sources.items():
-            ok, reply = _answer(pending[key])
-            assert ok, reply
-            _assert_is(reply, key, source, scene_root)
-        ok, health = call(session, proc.rpc_key, Health().to_message())
-        assert health["scenes"] == sorted(sources) and health["loading"] == []
+        _assert_all_loaded(session, proc, pending, sources, scene_root)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
