@@ -164,3 +164,36 @@ def test_a_rejoining_worker_gets_its_share_while_swaps_are_in_flight_and_no_slot
     _start(table, plan)
     assert table.plan_rebalance(pool.live, pool.generations) == []              # pending moves count on b
     assert table.loads(pool.live) == {"a": 3, "b": 3}
+
+
+def _armed_swap(table: SlotTable, pool: FakePool, slot: int, source: str):
+    move = table.plan_swap(slot, source, pool.generations)
+    table.start_move(slot, move)
+    table.arm(slot, move, np.ones((2, 3)), {"goal": [1, 2, 3]})
+    return move
+
+
+def test_an_armed_swap_is_taken_over_agent_by_agent_and_switches_with_the_last():
+    pool = FakePool("a")
+    table = SlotTable(["old0", "old1"], agents_per_scene=2)
+    _carry_out(table, table.plan_placement(pool.live, pool.generations))
+    _armed_swap(table, pool, 0, "new0")
+    assert table.agent_sources() == ["old0", "old0", "old1", "old1"]
+    moved, complete = table.take_over(np.array([1, 2]))      # agent 2's slot has no swap
+    assert moved.tolist() == [1] and complete == []
+    assert table.agent_sources() == ["old0", "new0", "old1", "old1"] and table.agent_metadata(1)["goal"] == [1, 2, 3]
+    assert table.scene_of(0, next_episode=True)[2] == "new0"  # agent 0's next start lies in the new scene
+    moved, complete = table.take_over(np.array([0, 1]))      # agent 1 moved already
+    assert moved.tolist() == [0] and complete == [0]
+
+
+def test_a_worker_lost_mid_takeover_cuts_only_the_agents_not_yet_moved():
+    pool = FakePool("a")
+    table = SlotTable(["old0", "old1"], agents_per_scene=2)
+    _carry_out(table, table.plan_placement(pool.live, pool.generations))
+    _armed_swap(table, pool, 0, "new0")
+    _armed_swap(table, pool, 1, "new1")
+    table.take_over(np.array([1]))
+    assert table.cut_by_orphaning("a").tolist() == [True, False, False, False]  # slot 1: nobody moved, nobody cut
+    table.orphan_worker("a")
+    assert [s.source for s in table.slots] == ["new0", "old1"] and not table.armed.any() and not table.in_incoming.any()

@@ -105,13 +105,12 @@ class SlotTable:
         """Forget ``worker_id``: its slots become orphans, moves towards it are cancelled. An armed
         swap there is dropped; if some agents already fly in it, the slot is placed again with its
         source (the others' episodes change scene: :meth:`cut_by_orphaning` says whose)."""
+        for s, _, moved in self._takeovers_on(worker_id):
+            if moved.any() and s.incoming is not None:
+                s.source = s.incoming.move.source
+            self._disarm(s)
         lost = []
         for s in self.slots:
-            if s.incoming is not None and s.incoming.move.worker == worker_id:
-                agents = self.agents_of(s.index)
-                if self.in_incoming[agents].any():
-                    s.source = s.incoming.move.source
-                self._disarm(s)
             if s.worker == worker_id:
                 s.worker = None
                 lost.append(s.index)
@@ -166,12 +165,18 @@ class SlotTable:
         """Agents whose running episode would change scene if ``worker_id`` were orphaned now: those
         not yet moved into an armed swap there that some of their slot's agents already fly in."""
         out = np.zeros(len(self.agent_scene), dtype=bool)
+        for _, agents, moved in self._takeovers_on(worker_id):
+            if moved.any():
+                out[agents[~moved]] = True
+        return out
+
+    def _takeovers_on(self, worker_id: str) -> list[tuple[Slot, np.ndarray, np.ndarray]]:
+        """``(slot, its agents, which of them moved)`` of each armed swap on ``worker_id``."""
+        out = []
         for s in self.slots:
             if s.incoming is not None and s.incoming.move.worker == worker_id:
                 agents = self.agents_of(s.index)
-                moved = self.in_incoming[agents]
-                if moved.any():
-                    out[agents[~moved]] = True
+                out.append((s, agents, self.in_incoming[agents].copy()))
         return out
 
     def arm(self, slot: int, move: Move, bounds: np.ndarray, metadata: dict[str, Any]) -> None:

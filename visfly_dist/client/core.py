@@ -454,11 +454,7 @@ class TensorEnv:
         none; a swap takes over at episode ends, so only a worker lost mid-swap does that); they
         start their next episode in the new scene. Agents of ``members`` whose next episode will
         be in a swapped-in scene get their next start drawn there."""
-        self._next_scene |= self.aggregator.take_next_scene()
-        redraw = self._next_scene & members
-        if redraw.any():
-            self._next_scene &= ~members
-            self._draw_next_starts(torch.as_tensor(np.flatnonzero(redraw), device=self.device))
+        self._redraw_for_new_scene(members)
         self._switched |= self.aggregator.take_switched()
         swapped = self._switched & members
         if not swapped.any():
@@ -469,6 +465,15 @@ class TensorEnv:
         swapped = torch.as_tensor(swapped, device=self.device)
         self._draw_next_starts(swapped.nonzero().squeeze(1))
         return swapped
+
+    def _redraw_for_new_scene(self, agents: np.ndarray) -> None:
+        """Draw again the next start of those of ``agents`` (``(N,)`` bool) whose next episode will
+        be in a swap armed since it was drawn: it lies in the new scene."""
+        self._next_scene |= self.aggregator.take_next_scene()
+        redraw = self._next_scene & agents
+        if redraw.any():
+            self._next_scene &= ~redraw
+            self._draw_next_starts(torch.as_tensor(np.flatnonzero(redraw), device=self.device))
 
     def expand_resets(self, terminated: torch.Tensor, truncated: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Hook: end further episodes because of these (teams end together in multi-agent tasks)."""
@@ -516,11 +521,9 @@ class TensorEnv:
         ``ended``: their episodes ended (they count towards scene swaps; a reset asked for does not)."""
         idx = mask.nonzero().squeeze(1)
         idx_np = idx.cpu().numpy()
-        self._next_scene |= self.aggregator.take_next_scene()
-        if self._next_scene[idx_np].any():  # a swap armed since their next start was drawn: draw it there
-            redraw = idx_np[self._next_scene[idx_np]]
-            self._next_scene[redraw] = False
-            self._draw_next_starts(torch.as_tensor(redraw, device=self.device))
+        chosen = np.zeros(self.num_envs, dtype=bool)
+        chosen[idx_np] = True
+        self._redraw_for_new_scene(chosen)  # a swap armed since their next start was drawn
         if len(self.aggregator.note_resets(idx_np, count=ended)):  # some start this episode in a swapped-in scene
             self.bounds = self._agent_bounds()
         fresh = self.quad.initial_state(self._next_pos)
