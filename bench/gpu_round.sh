@@ -1,29 +1,72 @@
 #!/usr/bin/env bash
-# The GPU-machine figures of the training loop (issue 22) and the batch EGL renderer (issue 23), in
-# one go, for a session that is lent a GPU host (one H100/H200, 16 cores). Run from the repository
-# root with visfly-dist importable; every step writes its JSON as it ends, so a cut run keeps what
-# it finished. Usage: OUT=/some/dir bash bench/gpu_round.sh   (default OUT: bench/results/gpu)
+# The GPU-machine figures of the training loop (issue 22) and the batch EGL renderer (issue 23) in
+# one budgeted go, for a session lent a GPU host (one H100/H200, 16 cores) for a few minutes. Run
+# from the repository root with visfly-dist importable (bench/gpu_bundle.sh). Each step has its own
+# limit and the round ends within BUDGET_S; STEPS picks the steps and their order. After every step
+# its log's end is printed, the logs and JSON rows are packed into $OUT/round.tgz and one line goes
+# to $OUT/status.txt, so a cut run keeps what it finished.
+#   OUT=/some/dir BUDGET_S=540 STEPS="train step render nav" bash bench/gpu_round.sh
+# Steps: train (bench train with the host plan, both trainers), step (bench step at 256 and 1,024
+# agents, 1 to 14 workers), render (100 cameras: batch egl, per-camera egl, tracer), nav (the main
+# job with no flags for what time is left, then 100 deterministic episodes on unseen garages),
+# profile (cProfile of the learner's main thread over a short default run).
 set -u
 OUT="${OUT:-bench/results/gpu}"
 PY="${PYTHON:-python3}"
+BUDGET_S="${BUDGET_S:-540}"
+STEPS="${STEPS:-train step render nav}"
+WORK="$(mktemp -d)"
 mkdir -p "$OUT"
-run() {  # run NAME CMD...: one benchmark, its output in NAME.log, its status in status.txt
-  local name="$1"; shift
-  echo "== $name: $*" | tee -a "$OUT/status.txt"
-  timeout 900 "$PY" -m visfly_dist.cli "$@" > "$OUT/$name.log" 2>&1
-  echo "   exit $?" | tee -a "$OUT/status.txt"
+START=$(date +%s)
+left() { echo $(( BUDGET_S - ($(date +%s) - START) )); }
+pack() { tar -C "$WORK" --exclude='*.zip' --exclude='videos' -czf "$OUT/round.tgz" . ; }
+run() {  # run NAME LIMIT_S ARGS...: one visfly-dist command, SIGINT at its limit, its output in NAME.log
+  local name="$1" limit="$2"; shift 2
+  local remaining; remaining=$(left)
+  if (( remaining < 25 )); then echo "== $name: skipped, ${remaining} s left" | tee -a "$OUT/status.txt"; return 1; fi
+  (( limit > remaining )) && limit=$remaining
+  echo "== $name (limit ${limit} s): visfly-dist $*" | tee -a "$OUT/status.txt"
+  local t0; t0=$(date +%s)
+  timeout -s INT -k 20 "$limit" "$PY" -m visfly_dist.cli "$@" > "$WORK/$name.log" 2>&1
+  local rc=$?
+  echo "   exit $rc after $(( $(date +%s) - t0 )) s" | tee -a "$OUT/status.txt"
+  grep -v -E "^\[ +[0-9,]+/" "$WORK/$name.log" | tail -n 25 | cut -c1-400
+  pack
+  return $rc
 }
-nvidia-smi -L > "$OUT/gpu.txt" 2>&1 || true
-# The renderer first (minutes): 100 cameras, the batch egl pass against the per-camera one and the tracer.
-run render bench render --backend egl egl-legacy raycast --res 64 256 --kinds depth rgb --agents 100 --reps 7 \
-    --no-worker --moving 0 --json "$OUT/render.json"
-# Workers sharing the cores: 1, 8 and 14 workers at 1,024 agents (goal: 8 and 14 >= 1.0x one).
-run step-1024 bench step --agents 1024 --workers 1 8 14 --steps 60 --json "$OUT/step-1024.json"
-run step-1024-egl bench step --agents 1024 --workers 1 --backend egl --steps 60 --json "$OUT/step-1024-egl.json"
-# The training loop with no flags: the host plan (cuda, its agents, workers and threads), both trainers.
-run train-plan bench train --timesteps 262144 --algo ppo sb3-ppo --json "$OUT/train-plan.json"
-# The main job itself for 10 minutes of wall time (SIGINT: it saves final.zip), then its success on unseen garages.
-timeout -s INT 600 "$PY" -m visfly_dist.cli train navigation --out "$OUT/nav" > "$OUT/nav.log" 2>&1
-"$PY" -m visfly_dist.cli eval navigation --checkpoint "$OUT/nav/final.zip" --episodes 100 --seed 777 \
-    --json "$OUT/nav-eval.json" >> "$OUT/nav.log" 2>&1
-tar -C "$(dirname "$OUT")" -czf "$OUT.tar.gz" "$(basename "$OUT")"
+step_train() {
+  run train-plan 150 bench train --timesteps 131072 --algo ppo sb3-ppo --json "$WORK/train-plan.json"
+}
+step_step() {
+  run step-256 70 bench step --agents 256 --workers 1 4 --steps 60 --json "$WORK/step-256.json"
+  run step-1024 100 bench step --agents 1024 --workers 1 8 14 --steps 40 --json "$WORK/step-1024.json"
+}
+step_render() {
+  run render 60 bench render --backend egl egl-legacy raycast --res 64 256 --kinds depth rgb --agents 100 --reps 3 \
+      --no-worker --moving 0 --json "$WORK/render.json" \
+    || run render-legacy 60 bench render --backend egl-legacy raycast --res 64 256 --kinds depth rgb --agents 100 \
+      --reps 3 --no-worker --moving 0 --json "$WORK/render-legacy.json"
+}
+step_nav() {
+  local limit=$(( $(left) - 70 ))
+  run nav "$limit" train navigation --out "$WORK/nav"
+  grep -E "^\[ +[0-9,]+/" "$WORK/nav.log" | tail -n 4
+  run nav-eval 60 eval navigation --checkpoint "$WORK/nav/final.zip" --episodes 100 --seed 777 --mode deterministic \
+      --json "$WORK/nav-eval.json"
+}
+step_profile() {
+  local remaining; remaining=$(left)
+  (( remaining < 60 )) && { echo "== profile: skipped" | tee -a "$OUT/status.txt"; return; }
+  echo "== profile: cProfile of train navigation, 65,536 steps" | tee -a "$OUT/status.txt"
+  timeout -s INT -k 20 90 "$PY" -m cProfile -o "$WORK/train.prof" -m visfly_dist.cli train navigation \
+      --timesteps 65536 --video-every 0 --out "$WORK/prof" > "$WORK/profile.log" 2>&1
+  "$PY" -c "import pstats, sys; s = pstats.Stats(sys.argv[1]); s.sort_stats('tottime').print_stats(25); \
+s.sort_stats('cumulative').print_stats(35)" "$WORK/train.prof" > "$WORK/profile.txt" 2>&1
+  grep -E "^ +[0-9]" "$WORK/profile.txt" | cut -c1-160 | head -n 60
+  pack
+}
+{ nvidia-smi -L; nproc; "$PY" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"; } \
+  > "$WORK/machine.txt" 2>&1
+cat "$WORK/machine.txt"
+for s in $STEPS; do "step_$s"; done
+echo "round done after $(( $(date +%s) - START )) s" | tee -a "$OUT/status.txt"

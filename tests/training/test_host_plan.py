@@ -20,12 +20,13 @@ WORKSTATION = HostFacts(cores=16, memory_bytes=120 * GIB, gpu="NVIDIA H200", gpu
 
 
 def navigation(facts: HostFacts, device: str = "cpu", **given) -> object:
-    return plan_host(facts, device, base_envs=32, base_batch=512, n_steps=64, **given)
+    return plan_host(facts, device, base_envs=32, base_batch=512, base_n_steps=64, base_timesteps=600_000, **given)
 
 
 def test_a_two_core_laptop_keeps_the_sizes_the_task_was_tuned_with() -> None:
-    plan = navigation(LAPTOP, timesteps=600_000)
+    plan = navigation(LAPTOP)
     assert (plan.num_envs, plan.batch_size, plan.workers, plan.worker_threads, plan.overlap) == (32, 512, 2, 1, False)
+    assert (plan.n_steps, plan.timesteps) == (64, 600_000)
     assert plan.video_every == 0   # no core to spare for films
 
 
@@ -36,32 +37,41 @@ def test_learner_workers_and_their_threads_never_ask_for_more_cores_than_the_hos
     assert plan.workers * plan.worker_threads + learner <= max(cores, plan.workers)
     assert plan.worker_threads >= 1 and plan.workers >= 1
     assert plan.batch_size <= 64 * plan.num_envs and plan.num_envs % 32 == 0
-    assert set(plan.reasons) == {"device", "workers", "worker_threads", "num_envs", "batch_size", "overlap", "video_every"}
+    assert set(plan.reasons) == {"device", "workers", "worker_threads", "num_envs", "n_steps", "batch_size", "timesteps",
+                                 "overlap", "video_every"}
+    # an update comes about as often as on 2 cores, over a rollout at least as large; as many updates in the run
+    rollout = plan.n_steps * plan.num_envs
+    assert 16 <= plan.n_steps <= 64 and rollout >= 64 * 32 and plan.batch_size * 4 == rollout
+    assert plan.timesteps * (64 * 32) == 600_000 * rollout
 
 
-def test_a_gpu_workstation_gets_more_agents_larger_minibatches_and_overlap() -> None:
-    plan = navigation(WORKSTATION, "cuda", timesteps=600_000)
+def test_a_gpu_workstation_gets_more_agents_shorter_rollouts_larger_minibatches_and_overlap() -> None:
+    plan = navigation(WORKSTATION, "cuda")
     assert plan.workers == 4 and plan.worker_threads == 3      # 4 x 3 + 2 for the learner = 14 of 16 cores
-    assert plan.video_every == 60_000                          # a film every tenth of the run
-    assert plan.num_envs == 32 * 8 and plan.batch_size == 512 * 8 and plan.overlap
+    assert plan.num_envs == 32 * 8 and plan.n_steps == 16 and plan.overlap
+    assert plan.batch_size == 512 * 2 and plan.timesteps == 600_000 * 2   # 4,096 samples an update: twice the task's
+    assert plan.video_every == 120_000                         # a film every tenth of the run
     assert "NVIDIA H200" in plan.reasons["device"]
     assert any("host plan: num_envs = 256" in line for line in plan.lines())
 
 
 def test_given_values_are_kept_and_said_so() -> None:
     plan = navigation(WORKSTATION, "cuda", num_envs=64, workers=14, worker_threads=1, overlap=False, batch_size=128,
-                      video_every=0)
+                      n_steps=8, timesteps=1000, video_every=0)
     assert (plan.num_envs, plan.workers, plan.worker_threads, plan.overlap, plan.batch_size) == (64, 14, 1, False, 128)
-    assert plan.video_every == 0
+    assert (plan.n_steps, plan.timesteps, plan.video_every) == (8, 1000, 0)
     assert all(why == "given" for name, why in plan.reasons.items() if name != "device")
-    assert navigation(WORKSTATION, "cuda", num_envs=64).batch_size == 1024  # the minibatch follows given agents
+    follows = navigation(WORKSTATION, "cuda", num_envs=64)         # rollout, minibatch and budget follow given agents
+    assert (follows.n_steps, follows.batch_size, follows.timesteps) == (32, 512, 600_000)
+    longer = navigation(WORKSTATION, "cuda", num_envs=64, n_steps=64)
+    assert (longer.batch_size, longer.timesteps) == (1024, 1_200_000)
 
 
 def test_memory_caps_the_agents_and_teams_stay_whole() -> None:
     small = HostFacts(cores=32, memory_bytes=1 * GIB, gpu=None)   # 16x: a 0.5 GiB rollout, over a quarter of 1 GiB
     assert navigation(small).num_envs < 32 * 16
     team = plan_host(HostFacts(cores=16, memory_bytes=64 * GIB, gpu=None), "cpu", base_envs=15, base_batch=480,
-                     n_steps=128, team=3)
+                     base_n_steps=128, team=3)
     assert team.num_envs % 3 == 0 and team.num_envs >= 15
 
 
@@ -84,7 +94,8 @@ def test_apply_host_plan_fills_the_config_and_records_the_plan() -> None:
     lines: list[str] = []
     cfg = apply_host_plan(TrainConfig(task="navigation", algo="ppo"), LAPTOP, log=lines.append)
     assert (cfg.device, cfg.num_envs, cfg.workers, cfg.worker_threads, cfg.batch_size) == ("cpu", 32, 2, 1, 512)
-    assert len(lines) == 7 and all(line.startswith("host plan: ") for line in lines)
+    assert len(lines) == 9 and all(line.startswith("host plan: ") for line in lines)
+    assert (cfg.n_steps, cfg.timesteps) == (64, 600_000)
     assert cfg.video_every == 0
     recorded = TrainConfig.from_dict(json.loads(json.dumps(cfg.resolved().to_dict())))
     assert recorded.host_plan["facts"]["cores"] == 2 and recorded.host_plan["num_envs"] == 32

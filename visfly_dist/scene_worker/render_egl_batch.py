@@ -208,7 +208,7 @@ class _Buffer:
         self.texture = None
         self.texture_format = texture_format
         if texture_format is not None:
-            self.texture = GL.glGenTextures(1)
+            self.texture = _texture_name()
 
     def upload(self, data: np.ndarray) -> None:
         GL = _gl()
@@ -229,6 +229,16 @@ class _Buffer:
         GL.glDeleteBuffers(1, [self.buffer])
         if self.texture is not None:
             GL.glDeleteTextures([self.texture])
+
+
+def _texture_name() -> int:
+    """A new texture name. Through the raw binding: PyOpenGL 3.1.0's ``glGenTextures(1)`` (pyrender
+    pins that version) passes a ``byref`` that Python 3.12's ctypes no longer lets it convert."""
+    from OpenGL.raw.GL.VERSION.GL_1_1 import glGenTextures
+
+    names = np.zeros(1, np.uint32)
+    glGenTextures(1, names)
+    return int(names[0])
 
 
 def _morton(points: np.ndarray) -> np.ndarray:

@@ -20,8 +20,13 @@ The rules:
   threads each, 15k).
 * **Agents**: the task's default (sized on 2 cores) times a scale, a power of two: half the usable
   cores, at least 8 with a GPU, capped by memory (the rollout must fit a quarter of what is free).
-* **Batch**: the rollout length stays; the minibatch grows with the agents, so an update keeps
-  the same number of minibatches over a larger batch (fewer, larger updates per env step).
+* **Rollout, minibatch and budget**: more agents take shorter rollouts (the task's length times
+  its agents over the plan's, at least :data:`MIN_ROLLOUT_STEPS`), so that an update comes about as
+  often as the task was tuned with; the minibatch grows with the rollout (as many minibatches per
+  update, each larger) and so does the run's budget of env steps: the run makes as many updates as
+  the task's budget did. PPO learned navigation per update, not per env step: 256 agents x 16 steps
+  (4,096 samples, minibatch 1,024) reached 0.22 training success after 54 updates as 32 x 64 did,
+  where 256 x 64 (16,384 samples) with the task's budget made 36 updates and learned nothing.
 * **Overlap** (two agent groups through ``send``/``recv``): on from 4 cores, where the learner has
   a core of its own; and whenever every worker is remote.
 * **Training videos**: one filmed every tenth of the run from 8 cores (a background thread with its
@@ -40,6 +45,9 @@ if TYPE_CHECKING:
     from visfly_dist.training.config import TrainConfig
 
 MAX_SCALE = 64
+MIN_ROLLOUT_STEPS = 16
+"""Rollouts are not shortened below this many steps per agent: GAE over fewer leans on the value
+estimate (GPU trainers with thousands of agents keep 16-24)."""
 MAX_WORKERS = 8
 VIDEO_MIN_CORES = 8
 """Training videos are filmed (in the background) by default from this many usable cores."""
@@ -79,6 +87,8 @@ class HostPlan:
     worker_threads: int
     overlap: bool
     batch_size: int
+    n_steps: int = 0
+    timesteps: int = 0
     video_every: int = 0
     reasons: dict[str, str] = field(default_factory=dict)
 
@@ -113,19 +123,20 @@ def check_device(device: str) -> str:
     return device
 
 
-def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_steps: int, *,
-              num_envs: int | None = None, workers: int | None = None, worker_threads: int | None = None,
-              overlap: bool | None = None, batch_size: int | None = None, remote_only: bool = False,
-              team: int = 1, timesteps: int = 0, video_every: int | None = None) -> HostPlan:
+def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, base_n_steps: int,
+              base_timesteps: int = 0, *, num_envs: int | None = None, workers: int | None = None,
+              worker_threads: int | None = None, overlap: bool | None = None, batch_size: int | None = None,
+              n_steps: int | None = None, timesteps: int | None = None, remote_only: bool = False,
+              team: int = 1, video_every: int | None = None) -> HostPlan:
     """Size a run for ``facts`` (pure: the same facts give the same plan).
 
     Args:
         facts: the host.
         device: the learner's device, already checked (``cpu``/``cuda...``).
-        base_envs, base_batch: the task's agents and minibatch for a 2-core CPU host.
-        n_steps: the rollout length (kept).
-        num_envs, workers, worker_threads, overlap, batch_size, video_every: given values, kept as they are.
-        timesteps: the run's budget (a film every tenth of it, where cores allow).
+        base_envs, base_batch, base_n_steps, base_timesteps: the task's agents, minibatch, rollout
+            length and budget of env steps, tuned on a 2-core CPU host.
+        num_envs, workers, worker_threads, overlap, batch_size, n_steps, timesteps, video_every: given
+            values, kept as they are.
         remote_only: every worker is remote (``--workers 0``).
         team: agents per team (the agent count stays a multiple of it).
     """
@@ -151,7 +162,7 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_
         if gpu:
             scale = max(scale, 8)
         rollout_budget = (facts.gpu_memory_bytes if gpu else facts.memory_bytes) // 4
-        while scale > 1 and base_envs * scale * n_steps * IMAGE_BYTES > rollout_budget:
+        while scale > 1 and base_envs * scale * (n_steps or base_n_steps) * IMAGE_BYTES > rollout_budget:
             scale //= 2
         scale = min(scale, MAX_SCALE)
         num_envs = max(team, (base_envs * scale) // team * team)
@@ -159,11 +170,25 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_
                                + (" (a GPU learner)" if gpu else f" ({cores} usable cores)"))
     else:
         reasons["num_envs"] = "given"
+    if n_steps is None:
+        n_steps = min(base_n_steps, max(MIN_ROLLOUT_STEPS, round(base_n_steps * base_envs / num_envs)))
+        reasons["n_steps"] = (f"the task's {base_n_steps}" if n_steps == base_n_steps else
+                              f"the task's {base_n_steps} x {base_envs}/{num_envs} agents, at least {MIN_ROLLOUT_STEPS}: "
+                              "updates about as often as the task was tuned with")
+    else:
+        reasons["n_steps"] = "given"
+    growth = max(1, round(n_steps * num_envs / (base_n_steps * base_envs)))   # samples per update, against the task's
     if batch_size is None:
-        batch_size = max(2, min(base_batch * max(1, num_envs // base_envs), n_steps * num_envs))
-        reasons["batch_size"] = f"the task's {base_batch} x {max(1, num_envs // base_envs)}: as many minibatches per update, each larger"
+        batch_size = max(2, min(base_batch * growth, n_steps * num_envs))
+        reasons["batch_size"] = f"the task's {base_batch} x {growth}: as many minibatches per update, each larger"
     else:
         reasons["batch_size"] = "given"
+    if timesteps is None:
+        timesteps = base_timesteps * growth
+        reasons["timesteps"] = (f"the task's {base_timesteps:,}" if growth == 1 else
+                                f"the task's {base_timesteps:,} x {growth}: as many updates, each {growth}x larger")
+    else:
+        reasons["timesteps"] = "given"
     if overlap is None:
         overlap = remote_only or cores >= 4
         reasons["overlap"] = ("every worker is remote: hide the round trip" if remote_only else
@@ -177,7 +202,8 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, n_
                                   f"{cores} cores: no core to spare for films (--video-every STEPS turns them on)")
     else:
         reasons["video_every"] = "given"
-    return HostPlan(facts, device, num_envs, workers, worker_threads, overlap, batch_size, video_every, reasons)
+    return HostPlan(facts, device, num_envs, workers, worker_threads, overlap, batch_size, n_steps, timesteps,
+                    video_every, reasons)
 
 
 def _power_of_two_at_most(n: int) -> int:
@@ -208,15 +234,14 @@ def apply_host_plan(cfg: "TrainConfig", facts: HostFacts | None = None, log: Any
     task_config = task_class(cfg.task).config_class()
     team = task_config.agents_per_scene if task_config.multi_agent else 1
     tensor = cfg.algo == "ppo"
-    plan = plan_host(facts, device, base["num_envs"], base["batch_size"], cfg.n_steps or base["n_steps"],
+    plan = plan_host(facts, device, base["num_envs"], base["batch_size"], base["n_steps"], base["timesteps"],
                      num_envs=cfg.num_envs, workers=cfg.workers, worker_threads=cfg.worker_threads,
-                     overlap=cfg.overlap if tensor else False, batch_size=cfg.batch_size,
-                     remote_only=cfg.workers == 0, team=team, timesteps=cfg.timesteps or base["timesteps"],
-                     video_every=cfg.video_every)
+                     overlap=cfg.overlap if tensor else False, batch_size=cfg.batch_size, n_steps=cfg.n_steps,
+                     timesteps=cfg.timesteps, remote_only=cfg.workers == 0, team=team, video_every=cfg.video_every)
     if not tensor:
         plan.reasons.pop("overlap", None)
     for line in plan.lines():
         log(line)
     return replace(cfg, device=device, num_envs=plan.num_envs, workers=plan.workers, worker_threads=plan.worker_threads,
-                   batch_size=plan.batch_size, overlap=plan.overlap if tensor else cfg.overlap, video_every=plan.video_every,
+                   batch_size=plan.batch_size, n_steps=plan.n_steps, timesteps=plan.timesteps, overlap=plan.overlap if tensor else cfg.overlap, video_every=plan.video_every,
                    host_plan=plan.to_dict())

@@ -327,13 +327,14 @@ class TensorPPO:
         everyone = len(ids) == self.num_envs
         rows = None if everyone else ids.to(self.device)
         ended = terminated | truncated
+        # the env's flags are on the host: what to do is decided there, without waiting on the device
+        any_held, any_cut, any_ended = bool(info["held"].any()), bool(truncated.any()), bool(ended.any())
         done = ended.to(self.device)
         held = info["held"].to(self.device)
         reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows,
-                                  held if bool(held.any()) else None)
-        cut = truncated.to(self.device)
-        if bool(cut.any()):  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
-            which = cut.nonzero().squeeze(1)
+                                  held if any_held else None)
+        if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
+            which = truncated.nonzero().squeeze(1).to(self.device)
             terminal = {k: v[which.to(v.device)] for k, v in info["terminal_observation"].items()}
             terminal = self.norm.observe(self._to_device(terminal), update=False)
             reward = reward.clone()
@@ -350,7 +351,7 @@ class TensorPPO:
             current = self._observation()
             for k, v in fresh.items():
                 current[k][rows] = v
-        if bool(done.any()):
+        if any_ended:
             self._record_episodes(ended, truncated, info)
 
     def _record_episodes(self, done: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> None:
