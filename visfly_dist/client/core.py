@@ -73,6 +73,7 @@ class _InFlight:
     members: np.ndarray
     held: torch.Tensor
     before: QuadState  # the state before this step: where an agent whose worker fails is held
+    pending: QuadState | None  # the group's state after this step, taken in with it (None: already in place)
     full: bool
     spawn_agents: np.ndarray
     started: float
@@ -243,8 +244,10 @@ class TensorEnv:
         Called exactly once per step, after ``get_success``, ``get_failure``, ``get_reward`` and
         ``get_observation``: those hooks must be pure (calling one twice gives the same result and
         changes nothing), so that state advances in this one place. With :meth:`send`/:meth:`recv`
-        only the agents of ``self.step_mask`` moved; state derived from the agents' own state is
-        unchanged for the others, and event counters must advance only where ``step_mask`` is set.
+        only the agents of ``self.step_mask`` moved: the others' ``state`` is the one of their last
+        finished step (a group still in flight takes its new state when :meth:`recv` returns it), so
+        state derived from it is unchanged for them, and event counters must advance only where
+        ``step_mask`` is set.
         """
 
     def precompute(self) -> None:
@@ -309,11 +312,17 @@ class TensorEnv:
         full = len(agents) == self.num_envs and hold is None  # every agent moves: no masking needed
         before = self.state
         stepped = self.quad.step(self.state, actions)
-        self.state = stepped if full or bool((group & ~held).all()) else QuadState.where(group & ~held, stepped, self.state)
-        self.actions = actions if len(agents) == self.num_envs else torch.where(group[:, None], actions, self.actions)
+        after = stepped if full or bool((group & ~held).all()) else QuadState.where(group & ~held, stepped, self.state)
+        # A group's new state joins self.state when its step is taken in (_finish): until then the task
+        # hooks of other groups' steps see its agents as they were at their last finished step.
+        alone = len(agents) == self.num_envs  # no other group can be in flight: in place now
+        pending = None if alone else after
+        if alone:
+            self.state = after
+        self.actions = actions if alone else torch.where(group[:, None], actions, self.actions)
         t1 = time.perf_counter()
         spawn_agents = np.flatnonzero(~self._prepared & members)
-        poses = self.state.pose().detach().cpu().numpy()
+        poses = after.pose().detach().cpu().numpy()
         # groups stepped in turn share one clock: a group's k-th step happens at k * ctrl_dt
         self._steps_sent[agents] += 1
         sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
@@ -321,8 +330,9 @@ class TensorEnv:
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
                                         sim_time=sim_time)
-        self.precompute()  # the workers render meanwhile
-        return _InFlight(ticket, group, members, held, before, full, spawn_agents, t0, t1 - t0, sim_time)
+        if alone:
+            self.precompute()  # the workers render meanwhile
+        return _InFlight(ticket, group, members, held, before, pending, full, spawn_agents, t0, t1 - t0, sim_time)
 
     def _finish(self, flight: _InFlight) -> StepResult:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
@@ -339,6 +349,8 @@ class TensorEnv:
         self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)  # noqa: E501
         t1 = time.perf_counter()
         group, full, held = flight.group, flight.full, flight.held
+        if flight.pending is not None:
+            self.state = QuadState.where(group, flight.pending, self.state)
         paused = self._hold_lost(obs.lost, flight)
         if paused is not None:  # their step is undone: they wait where they were for their worker
             self.state = QuadState.where(paused, flight.before, self.state)
