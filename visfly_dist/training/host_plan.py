@@ -243,5 +243,5 @@ def apply_host_plan(cfg: "TrainConfig", facts: HostFacts | None = None, log: Any
     for line in plan.lines():
         log(line)
     return replace(cfg, device=device, num_envs=plan.num_envs, workers=plan.workers, worker_threads=plan.worker_threads,
-                   batch_size=plan.batch_size, n_steps=plan.n_steps, timesteps=plan.timesteps, overlap=plan.overlap if tensor else cfg.overlap, video_every=plan.video_every,
-                   host_plan=plan.to_dict())
+                   batch_size=plan.batch_size, n_steps=plan.n_steps, timesteps=plan.timesteps,
+                   overlap=plan.overlap if tensor else cfg.overlap, video_every=plan.video_every, host_plan=plan.to_dict())
