@@ -67,6 +67,12 @@ def test_given_values_are_kept_and_said_so() -> None:
     assert (longer.batch_size, longer.timesteps) == (1024, 1_200_000)
 
 
+def test_no_plan_goes_past_the_largest_batch_whose_learning_was_checked() -> None:
+    wide = plan_host(WORKSTATION, "cuda", base_envs=64, base_batch=512, base_n_steps=32, base_timesteps=600_000)
+    assert (wide.num_envs, wide.n_steps, wide.batch_size, wide.timesteps) == (256, 16, 1024, 1_200_000)
+    assert navigation(HostFacts(cores=128, memory_bytes=512 * GIB, gpu=None)).num_envs == 256
+
+
 def test_memory_caps_the_agents_and_teams_stay_whole() -> None:
     small = HostFacts(cores=32, memory_bytes=1 * GIB, gpu=None)   # 16x: a 0.5 GiB rollout, over a quarter of 1 GiB
     assert navigation(small).num_envs < 32 * 16
@@ -93,12 +99,12 @@ def test_cuda_without_a_usable_gpu_fails_naming_torchs_build() -> None:
 def test_apply_host_plan_fills_the_config_and_records_the_plan() -> None:
     lines: list[str] = []
     cfg = apply_host_plan(TrainConfig(task="navigation", algo="ppo"), LAPTOP, log=lines.append)
-    assert (cfg.device, cfg.num_envs, cfg.workers, cfg.worker_threads, cfg.batch_size) == ("cpu", 32, 2, 1, 512)
+    assert (cfg.device, cfg.num_envs, cfg.workers, cfg.worker_threads, cfg.batch_size) == ("cpu", 64, 2, 1, 512)
     assert len(lines) == 9 and all(line.startswith("host plan: ") for line in lines)
-    assert (cfg.n_steps, cfg.timesteps) == (64, 600_000)
+    assert (cfg.n_steps, cfg.timesteps) == (32, 600_000)
     assert cfg.video_every == 0
     recorded = TrainConfig.from_dict(json.loads(json.dumps(cfg.resolved().to_dict())))
-    assert recorded.host_plan["facts"]["cores"] == 2 and recorded.host_plan["num_envs"] == 32
+    assert recorded.host_plan["facts"]["cores"] == 2 and recorded.host_plan["num_envs"] == 64
     sb3 = apply_host_plan(TrainConfig(task="navigation", algo="sb3-ppo", workers=0, connect=("tcp/127.0.0.1:1",)),
                           WORKSTATION, log=lines.append)
     assert sb3.overlap is None and sb3.resolved().overlap is True   # SB3's lagged overlap keeps its own default

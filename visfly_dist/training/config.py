@@ -48,7 +48,10 @@ TASK_DEFAULTS: dict[str, dict[str, Any]] = {
     # Three passes over each rollout instead of five (fewer updates, as the fast systems train): the
     # update was 60-70% of the loop on 2 cores; 0.94 [0.88, 0.97] deterministic success on unseen
     # garages at 600k steps, against 0.93 with five (docs/RESULTS.md).
-    "navigation": _task(algo="ppo", num_envs=32, timesteps=600_000, n_steps=64, batch_size=512, n_epochs=3,
+    # 64 envs x 32 steps (the same 2,048 samples per update again): the per-step costs spread over
+    # twice the agents, 1.13-1.19x the whole loop's env steps/s of 32 x 64 on 2 cores (BENCHMARKS.md);
+    # 0.95 [0.89, 0.98] deterministic success on unseen garages at 600k steps (docs/RESULTS.md).
+    "navigation": _task(algo="ppo", num_envs=64, timesteps=600_000, n_steps=32, batch_size=512, n_epochs=3,
                         log_std_init=-1.0),
     "hover": _task(timesteps=100_000),
     # Landing's reward is differentiable (tasks/landing.py): BPTT landed 1.00 of 100 episodes from

@@ -19,7 +19,8 @@ The rules:
   with 16 threads stepped 21k env-steps/s at 1,024 agents on a 16-core host; 14 workers with 8
   threads each, 15k).
 * **Agents**: the task's default (sized on 2 cores) times a scale, a power of two: half the usable
-  cores, at least 8 with a GPU, capped by memory (the rollout must fit a quarter of what is free).
+  cores, at least 8 with a GPU, capped by memory (the rollout must fit a quarter of what is free)
+  and at :data:`MAX_AGENTS`.
 * **Rollout, minibatch and budget**: more agents take shorter rollouts (the task's length times
   its agents over the plan's, at least :data:`MIN_ROLLOUT_STEPS`), so that an update comes about as
   often as the task was tuned with; the minibatch grows with the rollout (as many minibatches per
@@ -45,6 +46,9 @@ if TYPE_CHECKING:
     from visfly_dist.training.config import TrainConfig
 
 MAX_SCALE = 64
+MAX_AGENTS = 256
+"""The plan gives no run more agents than this: the largest batch whose learning was checked
+(navigation, 256 agents x 16 steps, docs/RESULTS.md)."""
 MIN_ROLLOUT_STEPS = 16
 """Rollouts are not shortened below this many steps per agent: GAE over fewer leans on the value
 estimate (GPU trainers with thousands of agents keep 16-24)."""
@@ -165,6 +169,8 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, ba
         while scale > 1 and base_envs * scale * (n_steps or base_n_steps) * IMAGE_BYTES > rollout_budget:
             scale //= 2
         scale = min(scale, MAX_SCALE)
+        while scale > 1 and base_envs * scale > MAX_AGENTS:
+            scale //= 2
         num_envs = max(team, (base_envs * scale) // team * team)
         reasons["num_envs"] = (f"the task's {base_envs} (sized for 2 cores) x {scale}"
                                + (" (a GPU learner)" if gpu else f" ({cores} usable cores)"))
