@@ -154,7 +154,8 @@ def as_from_a_terminal() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-def test_ctrl_c_saves_the_model_and_stops_the_workers(tmp_path: Path) -> None:
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_saves_the_model_and_stops_the_workers(tmp_path: Path, stop: signal.Signals) -> None:
     out = tmp_path / "run"
     proc = subprocess.Popen([*CLI, "train", "hover", "--timesteps", "10000000", "--out", str(out), *TINY],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=as_from_a_terminal)
@@ -165,13 +166,13 @@ def test_ctrl_c_saves_the_model_and_stops_the_workers(tmp_path: Path) -> None:
             time.sleep(0.2)
         workers = children(proc.pid)
         assert workers, "the run should have spawned its scene worker"
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         _, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 130, stderr
+    assert proc.returncode == 128 + stop, stderr   # 130 for Ctrl-C, 143 for SIGTERM (Slurm's time limit, kill)
     assert "interrupted at" in stderr
     assert (out / "final.zip").is_file() and (out / "success_curve.png").is_file()
     assert not [pid for pid in workers if alive(pid)]

@@ -17,6 +17,7 @@ for training with your own algorithm.
 from __future__ import annotations
 
 import argparse
+import signal
 from pathlib import Path
 
 from visfly_dist.errors import ConfigError
@@ -145,5 +146,17 @@ def run(args: argparse.Namespace) -> int:
         from visfly_dist.training.shac import train_shac as train
     else:
         from visfly_dist.training.ppo import train
-    result = train(cfg)
-    return 130 if result.interrupted else 0
+    stopped: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: _stop(stopped, signum))
+    try:
+        result = train(cfg)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    return 128 + stopped[0] if stopped else 130 if result.interrupted else 0
+
+
+def _stop(stopped: list[int], signum: int) -> None:
+    """SIGTERM (Slurm's time limit and preemption, ``kill``, ``timeout``) stops training as Ctrl-C
+    does: the trainer saves ``final.zip`` and closes its workers."""
+    stopped.append(signum)
+    raise KeyboardInterrupt(f"signal {signum}")
