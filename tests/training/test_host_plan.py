@@ -48,11 +48,11 @@ def test_learner_workers_and_their_threads_never_ask_for_more_cores_than_the_hos
 def test_a_gpu_workstation_gets_more_agents_shorter_rollouts_larger_minibatches_and_overlap() -> None:
     plan = navigation(WORKSTATION, "cuda")
     assert plan.workers == 4 and plan.worker_threads == 3      # 4 x 3 + 2 for the learner = 14 of 16 cores
-    assert plan.num_envs == 32 * 8 and plan.n_steps == 16 and plan.overlap
-    assert plan.batch_size == 512 * 2 and plan.timesteps == 600_000 * 2   # 4,096 samples an update: twice the task's
-    assert plan.video_every == 120_000                         # a film every tenth of the run
+    assert plan.num_envs == 128 and plan.n_steps == 16 and plan.overlap   # at most MAX_AGENTS
+    assert plan.batch_size == 512 and plan.timesteps == 600_000   # 2,048 samples an update, as the task's
+    assert plan.video_every == 60_000                          # a film every tenth of the run
     assert "NVIDIA H200" in plan.reasons["device"]
-    assert any("host plan: num_envs = 256" in line for line in plan.lines())
+    assert any("host plan: num_envs = 128" in line for line in plan.lines())
 
 
 def test_given_values_are_kept_and_said_so() -> None:
@@ -69,8 +69,10 @@ def test_given_values_are_kept_and_said_so() -> None:
 
 def test_no_plan_goes_past_the_largest_batch_whose_learning_was_checked() -> None:
     wide = plan_host(WORKSTATION, "cuda", base_envs=64, base_batch=512, base_n_steps=32, base_timesteps=600_000)
-    assert (wide.num_envs, wide.n_steps, wide.batch_size, wide.timesteps) == (256, 16, 1024, 1_200_000)
-    assert navigation(HostFacts(cores=128, memory_bytes=512 * GIB, gpu=None)).num_envs == 256
+    assert (wide.num_envs, wide.n_steps, wide.batch_size, wide.timesteps) == (128, 16, 512, 600_000)
+    assert navigation(HostFacts(cores=128, memory_bytes=512 * GIB, gpu=None)).num_envs == 128
+    hover = plan_host(WORKSTATION, "cuda", base_envs=16, base_batch=512, base_n_steps=128, base_timesteps=100_000)
+    assert (hover.num_envs, hover.n_steps, hover.batch_size, hover.timesteps) == (128, 16, 512, 100_000)
 
 
 def test_memory_caps_the_agents_and_teams_stay_whole() -> None:

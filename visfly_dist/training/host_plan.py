@@ -25,9 +25,10 @@ The rules:
   its agents over the plan's, at least :data:`MIN_ROLLOUT_STEPS`), so that an update comes about as
   often as the task was tuned with; the minibatch grows with the rollout (as many minibatches per
   update, each larger) and so does the run's budget of env steps: the run makes as many updates as
-  the task's budget did. PPO learned navigation per update, not per env step: 256 agents x 16 steps
-  (4,096 samples, minibatch 1,024) reached 0.22 training success after 54 updates as 32 x 64 did,
-  where 256 x 64 (16,384 samples) with the task's budget made 36 updates and learned nothing.
+  the task's budget did. PPO learned navigation per update, not per env step: 256 x 64 (16,384
+  samples an update) with the task's 600k steps makes 36 updates, where 32 x 64 needed about 150
+  to reach its goal; 128 x 16 (2,048 samples, as 32 x 64 and 64 x 32) reached 0.96 on unseen
+  garages (docs/RESULTS.md).
 * **Overlap** (two agent groups through ``send``/``recv``): on from 4 cores, where the learner has
   a core of its own; and whenever every worker is remote.
 * **Training videos**: one filmed every tenth of the run from 8 cores (a background thread with its
@@ -46,9 +47,10 @@ if TYPE_CHECKING:
     from visfly_dist.training.config import TrainConfig
 
 MAX_SCALE = 64
-MAX_AGENTS = 256
-"""The plan gives no run more agents than this: the largest batch whose learning was checked
-(navigation, 256 agents x 16 steps, docs/RESULTS.md)."""
+MAX_AGENTS = 128
+"""The plan gives no run more agents than this: the most whose learning was seen to reach the task's
+goal (navigation, 128 agents x 16 steps with overlap: 0.96 on unseen garages; 256 x 16 with twice the
+samples an update and steps: 0.87; docs/RESULTS.md)."""
 MIN_ROLLOUT_STEPS = 16
 """Rollouts are not shortened below this many steps per agent: GAE over fewer leans on the value
 estimate (GPU trainers with thousands of agents keep 16-24)."""
