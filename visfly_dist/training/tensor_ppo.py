@@ -334,8 +334,9 @@ class TensorPPO:
         reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows,
                                   held if any_held else None)
         if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
-            which = truncated.nonzero().squeeze(1).to(self.device)
-            terminal = {k: v[which.to(v.device)] for k, v in info["terminal_observation"].items()}
+            cut_rows = truncated.nonzero().squeeze(1)  # on the env's device
+            which = cut_rows.to(self.device)
+            terminal = {k: v[cut_rows.to(v.device)] for k, v in info["terminal_observation"].items()}
             terminal = self.norm.observe(self._to_device(terminal), update=False)
             reward = reward.clone()
             reward[which] += self.model.gamma * self.policy.predict_values(terminal).flatten()
