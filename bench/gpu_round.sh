@@ -8,7 +8,8 @@
 #   OUT=/some/dir BUDGET_S=540 STEPS="train step render nav" bash bench/gpu_round.sh
 # Steps: train (bench train with the host plan, both trainers), step (bench step at 256 and 1,024
 # agents, 1 to 14 workers), render (100 cameras: batch egl, per-camera egl, tracer), nav (the main
-# job with no flags for what time is left, then 100 deterministic episodes on unseen garages),
+# job with no flags for what time is left, at most NAV_LIMIT_S, then 100 deterministic episodes on
+# unseen garages), step128 / step1024 (bench step at that many agents alone),
 # profile (cProfile of the learner's main thread over a short default run).
 set -u
 OUT="${OUT:-bench/results/gpu}"
@@ -37,6 +38,12 @@ run() {  # run NAME LIMIT_S ARGS...: one visfly-dist command, SIGINT at its limi
 step_train() {
   run train-plan 150 bench train --timesteps 131072 --algo ppo sb3-ppo --json "$WORK/train-plan.json"
 }
+step_step128() {  # the main job's agents on GPU hosts (the loop's ratio to the simulator)
+  run step-128 45 bench step --agents 128 --workers 1 4 --steps 100 --json "$WORK/step-128.json"
+}
+step_step1024() {
+  run step-1024 100 bench step --agents 1024 --workers 1 8 14 --steps 40 --json "$WORK/step-1024.json"
+}
 step_step() {
   run step-256 70 bench step --agents 256 --workers 1 4 --steps 60 --json "$WORK/step-256.json"
   run step-1024 100 bench step --agents 1024 --workers 1 8 14 --steps 40 --json "$WORK/step-1024.json"
@@ -49,6 +56,7 @@ step_render() {
 }
 step_nav() {
   local limit=$(( $(left) - 70 ))
+  (( limit > ${NAV_LIMIT_S:-100000} )) && limit=$NAV_LIMIT_S
   run nav "$limit" train navigation --out "$WORK/nav"
   grep -E "^\[ +[0-9,]+/" "$WORK/nav.log" | tail -n 4
   run nav-eval 60 eval navigation --checkpoint "$WORK/nav/final.zip" --episodes 100 --seed 777 --mode deterministic \
