@@ -8,7 +8,8 @@ on :meth:`~visfly_dist.client.env_base.DroneEnvBase.step_tensor`:
 
 1. **Act.** The policy (SB3's ``MultiInputActorCriticPolicy`` with our extractors, so checkpoints are
    SB3 ``.zip`` files that ``eval`` and ``export`` load as before) samples actions for the current,
-   already normalised observation on the learner's device.
+   already normalised observation on the learner's device (on a GPU, replayed from a CUDA graph:
+   :mod:`visfly_dist.training.graphed_policy`).
 2. **Step.** ``step_tensor`` advances the agents; its observation tensors (the images a view of the
    workers' shared-memory segment) cross to the device once, straight into the preallocated
    rollout tensors (``observations[t]``, ``actions[t]``, ``log_probs[t]``, ``values[t]``,
@@ -50,6 +51,7 @@ from stable_baselines3.common.utils import explained_variance
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import save_normalization
+from visfly_dist.training.graphed_policy import GraphedForward
 from visfly_dist.training.parallel_update import UpdateSettings, minibatch_gradients
 from visfly_dist.training.threads import UpdateThreadChooser
 
@@ -228,6 +230,7 @@ class TensorPPO:
         self.norm = Normalizer(env.observation_space, env.num_envs, model.gamma, self.device, enabled=normalize)
         self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device)
         self.groups = self._groups(overlap)
+        self.forward = GraphedForward(self.policy)  # the rollout's policy calls: CUDA graphs on a GPU
         self.threads = UpdateThreadChooser([update_threads] if update_threads else [max(cpu_cores, 1), 1])
         self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0, "loop_s": 0.0}
         self._obs: dict[str, torch.Tensor] | None = None  # normalised observation of every agent, on the device
@@ -311,7 +314,7 @@ class TensorPPO:
         everyone = len(ids) == self.num_envs
         current = self._observation()
         obs = current if everyone else {k: v[ids] for k, v in current.items()}
-        actions, values, log_probs = self.policy(obs)
+        actions, values, log_probs = self.forward(obs)
         r = self.rollout
         rows = slice(None) if everyone else ids.to(self.device)
         for k, v in obs.items():
