@@ -38,13 +38,22 @@ from visfly_dist.errors import ConfigError
 
 @dataclass
 class ShardStats:
-    """Sums over one part of a minibatch (divide by the minibatch size for means)."""
+    """Sums over one part of a minibatch (divide by the minibatch size for means), as 0-dim tensors
+    on the policy's device: reading one back waits for the device to finish, so an update on a GPU
+    reads them once, at its end (:func:`mean_stats`), not after every minibatch."""
 
-    policy_loss: float
-    value_loss: float
-    entropy_loss: float
-    clipped: float
-    approx_kl: float
+    policy_loss: torch.Tensor
+    value_loss: torch.Tensor
+    entropy_loss: torch.Tensor
+    clipped: torch.Tensor
+    approx_kl: torch.Tensor
+
+
+def mean_stats(stats: list[ShardStats]) -> dict[str, float]:
+    """Each field's mean over ``stats`` (one read-back from the device)."""
+    names = list(ShardStats.__dataclass_fields__)
+    table = torch.stack([torch.stack([getattr(s, name).float() for name in names]) for s in stats])
+    return dict(zip(names, table.mean(dim=0).tolist()))
 
 
 @dataclass
@@ -101,9 +110,9 @@ def shard_loss_backward(policy: ActorCriticPolicy, data: Any, advantages: torch.
     loss.backward()
     with torch.no_grad():
         log_ratio = log_prob - old_log_prob
-        approx_kl = float(((torch.exp(log_ratio) - 1) - log_ratio).sum())
-        clipped = float((torch.abs(ratio - 1) > clip).float().sum())
-    return ShardStats(policy_loss.item(), value_loss.item(), entropy_loss.item(), clipped, approx_kl)
+        approx_kl = ((torch.exp(log_ratio) - 1) - log_ratio).sum()
+        clipped = (torch.abs(ratio - 1) > clip).float().sum()
+    return ShardStats(policy_loss.detach(), value_loss.detach(), entropy_loss.detach(), clipped, approx_kl)
 
 
 def shard_slices(size: int, shards: int) -> list[slice]:
@@ -161,11 +170,12 @@ def sharded_ppo_train(model: Any, shards: int) -> None:
                 policy.optimizer.zero_grad()
                 batch = minibatch_gradients(policy, data, settings, discrete, pool, shards)
                 stats.append(batch)
-                approx_kl.append(batch.approx_kl)
-                if model.target_kl is not None and batch.approx_kl > 1.5 * model.target_kl:
+                kl = float(batch.approx_kl)
+                approx_kl.append(kl)
+                if model.target_kl is not None and kl > 1.5 * model.target_kl:
                     stop = True
                     if model.verbose >= 1:
-                        print(f"Early stopping at step {epoch} due to reaching max kl: {batch.approx_kl:.2f}")
+                        print(f"Early stopping at step {epoch} due to reaching max kl: {kl:.2f}")
                     break
                 torch.nn.utils.clip_grad_norm_(policy.parameters(), model.max_grad_norm)
                 policy.optimizer.step()
@@ -175,14 +185,14 @@ def sharded_ppo_train(model: Any, shards: int) -> None:
     finally:
         if pool is not None:
             pool.shutdown(wait=True)
-    buffer, last = model.rollout_buffer, stats[-1]
+    buffer, last, means = model.rollout_buffer, mean_stats(stats[-1:]), mean_stats(stats)
     record: Callable[..., None] = model.logger.record
-    record("train/entropy_loss", np.mean([s.entropy_loss for s in stats]))
-    record("train/policy_gradient_loss", np.mean([s.policy_loss for s in stats]))
-    record("train/value_loss", np.mean([s.value_loss for s in stats]))
+    record("train/entropy_loss", means["entropy_loss"])
+    record("train/policy_gradient_loss", means["policy_loss"])
+    record("train/value_loss", means["value_loss"])
     record("train/approx_kl", np.mean(approx_kl))
-    record("train/clip_fraction", np.mean([s.clipped for s in stats]))
-    record("train/loss", last.policy_loss + settings.ent_coef * last.entropy_loss + settings.vf_coef * last.value_loss)
+    record("train/clip_fraction", means["clipped"])
+    record("train/loss", last["policy_loss"] + settings.ent_coef * last["entropy_loss"] + settings.vf_coef * last["value_loss"])
     record("train/explained_variance", explained_variance(buffer.values.flatten(), buffer.returns.flatten()))
     if hasattr(policy, "log_std"):
         record("train/std", torch.exp(policy.log_std).mean().item())

@@ -52,7 +52,7 @@ from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import save_normalization
 from visfly_dist.training.graphed_policy import GraphedForward
-from visfly_dist.training.parallel_update import UpdateSettings, minibatch_gradients
+from visfly_dist.training.parallel_update import UpdateSettings, mean_stats, minibatch_gradients
 from visfly_dist.training.threads import UpdateThreadChooser
 
 CLIP_OBS = 10.0
@@ -424,13 +424,13 @@ class TensorPPO:
             torch.set_num_threads(rollout_threads)
             if on_cpu:
                 self.threads.record(shards, time.perf_counter() - t0)
-        record = model.logger.record
+        record, means = model.logger.record, mean_stats(stats)
         record("train/update_threads", shards)
-        record("train/entropy_loss", float(np.mean([s.entropy_loss for s in stats])))
-        record("train/policy_gradient_loss", float(np.mean([s.policy_loss for s in stats])))
-        record("train/value_loss", float(np.mean([s.value_loss for s in stats])))
-        record("train/approx_kl", float(np.mean([s.approx_kl for s in stats])))
-        record("train/clip_fraction", float(np.mean([s.clipped for s in stats])))
+        record("train/entropy_loss", means["entropy_loss"])
+        record("train/policy_gradient_loss", means["policy_loss"])
+        record("train/value_loss", means["value_loss"])
+        record("train/approx_kl", means["approx_kl"])
+        record("train/clip_fraction", means["clipped"])
         record("train/explained_variance", float(explained_variance(values[transitions].cpu().numpy(),
                                                                     returns[transitions].cpu().numpy())))
         record("train/held_steps", size - len(transitions))
