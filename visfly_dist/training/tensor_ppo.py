@@ -231,6 +231,8 @@ class TensorPPO:
         self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device)
         self.groups = self._groups(overlap)
         self.forward = GraphedForward(self.policy)  # the rollout's policy calls: CUDA graphs on a GPU
+        if self.device.type == "cuda":  # the trunk's shapes are fixed: let cuDNN time its algorithms once
+            torch.backends.cudnn.benchmark = True
         self.threads = UpdateThreadChooser([update_threads] if update_threads else [max(cpu_cores, 1), 1])
         self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0, "loop_s": 0.0}
         self._obs: dict[str, torch.Tensor] | None = None  # normalised observation of every agent, on the device
