@@ -11,9 +11,9 @@ on :meth:`~visfly_dist.client.env_base.DroneEnvBase.step_tensor`:
    already normalised observation on the learner's device (on a GPU, replayed from a CUDA graph:
    :mod:`visfly_dist.training.graphed_policy`).
 2. **Step.** ``step_tensor`` advances the agents; its observation tensors (the images a view of the
-   workers' shared-memory segment) cross to the device once, straight into the preallocated
-   rollout tensors (``observations[t]``, ``actions[t]``, ``log_probs[t]``, ``values[t]``,
-   ``rewards[t]``, ``dones[t]``).
+   workers' shared-memory segment), rewards and end flags cross to the device in one copy through
+   pinned memory (:mod:`visfly_dist.training.device_stage`), into the preallocated rollout tensors
+   (``observations[t]``, ``actions[t]``, ``log_probs[t]``, ``values[t]``, ``rewards[t]``, ``dones[t]``).
 3. **Normalise on the device.** Vector entries (``state``, ``target``, ...) and rewards are scaled
    by running statistics kept as tensors (VecNormalize's formulas: clip 10, epsilon 1e-8, returns
    discounted by ``gamma``); images are never copied for it. A truncated episode (time limit,
@@ -51,6 +51,7 @@ from stable_baselines3.common.utils import explained_variance
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import save_normalization
+from visfly_dist.training.device_stage import DeviceStage
 from visfly_dist.training.graphed_policy import GraphedForward
 from visfly_dist.training.parallel_update import UpdateSettings, mean_stats, minibatch_gradients
 from visfly_dist.training.threads import UpdateThreadChooser
@@ -230,6 +231,8 @@ class TensorPPO:
         self.norm = Normalizer(env.observation_space, env.num_envs, model.gamma, self.device, enabled=normalize)
         self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device)
         self.groups = self._groups(overlap)
+        self.group_rows = [ids.to(self.device) for ids in self.groups]  # the same, on the learner's device
+        self.stage = DeviceStage(self.device)  # a step's observation, rewards and flags: one copy to the device
         self.forward = GraphedForward(self.policy)  # the rollout's policy calls: CUDA graphs on a GPU
         if self.device.type == "cuda":  # the trunk's shapes are fixed: let cuDNN time its algorithms once
             torch.backends.cudnn.benchmark = True
@@ -286,8 +289,8 @@ class TensorPPO:
         with torch.no_grad():
             if len(self.groups) == 1:
                 for t in range(self.n_steps):
-                    actions = self._act(self.groups[0], t)
-                    self._take(self.groups[0], t, self.env.step_tensor(actions))
+                    actions = self._act(0, t)
+                    self._take(0, t, self.env.step_tensor(actions))
             else:
                 self._collect_overlapped()
             last_values = self.policy.predict_values(self._observation()).flatten()
@@ -299,26 +302,27 @@ class TensorPPO:
         owner = torch.empty(self.num_envs, dtype=torch.long)
         for g, ids in enumerate(self.groups):
             owner[ids] = g
-            self.env.send(self._act(ids, 0), ids)
+            self.env.send(self._act(g, 0), ids)
         in_flight = len(self.groups)
         while in_flight:
             result, ids = self.env.recv()
             g = int(owner[int(ids[0])])
-            self._take(self.groups[g], steps[g], result)
+            self._take(g, steps[g], result)
             steps[g] += 1
             if steps[g] < self.n_steps:
-                self.env.send(self._act(self.groups[g], steps[g]), self.groups[g])
+                self.env.send(self._act(g, steps[g]), self.groups[g])
             else:
                 in_flight -= 1
 
-    def _act(self, ids: torch.Tensor, t: int) -> torch.Tensor:
-        """Sample actions for agents ``ids`` at rollout step ``t`` and store what PPO needs of them."""
-        everyone = len(ids) == self.num_envs
+    def _act(self, g: int, t: int) -> torch.Tensor:
+        """Sample actions for group ``g`` at rollout step ``t`` and store what PPO needs of them."""
+        everyone = len(self.groups) == 1
         current = self._observation()
+        ids = self.group_rows[g]
         obs = current if everyone else {k: v[ids] for k, v in current.items()}
         actions, values, log_probs = self.forward(obs)
         r = self.rollout
-        rows = slice(None) if everyone else ids.to(self.device)
+        rows = slice(None) if everyone else ids
         for k, v in obs.items():
             r.observations[k][t, rows] = v
         r.actions[t, rows] = actions
@@ -326,18 +330,18 @@ class TensorPPO:
         r.log_probs[t, rows] = log_probs
         return actions.clamp(-1.0, 1.0).to(self.env.device)
 
-    def _take(self, ids: torch.Tensor, t: int, result: Any) -> None:
-        """Rewards, ends and next observations of agents ``ids`` from their step ``t``."""
+    def _take(self, g: int, t: int, result: Any) -> None:
+        """Rewards, ends and next observations of group ``g`` from its step ``t``."""
         obs, reward, terminated, truncated, info = result
-        everyone = len(ids) == self.num_envs
-        rows = None if everyone else ids.to(self.device)
+        everyone = len(self.groups) == 1
+        rows = None if everyone else self.group_rows[g]
         ended = terminated | truncated
         # the env's flags are on the host: what to do is decided there, without waiting on the device
         any_held, any_cut, any_ended = bool(info["held"].any()), bool(truncated.any()), bool(ended.any())
-        done = ended.to(self.device)
-        held = info["held"].to(self.device)
-        reward = self.norm.reward(reward.detach().to(self.device, torch.float32), done, rows,
-                                  held if any_held else None)
+        moved = self.stage({**{f"obs.{k}": v for k, v in obs.items()}, "reward": reward.detach().to(torch.float32),
+                            "done": ended, "held": info["held"]})
+        done, held = moved["done"], moved["held"]
+        reward = self.norm.reward(moved["reward"], done, rows, held if any_held else None)
         if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
             cut_rows = truncated.nonzero().squeeze(1)  # on the env's device
             which = cut_rows.to(self.device)
@@ -350,7 +354,7 @@ class TensorPPO:
         r.rewards[t, index] = reward
         r.dones[t, index] = done
         r.held[t, index] = held
-        fresh = self.norm.observe(self._to_device(obs))
+        fresh = self.norm.observe({k: moved[f"obs.{k}"] for k in obs})
         if everyone:
             self._obs = fresh
         else:
