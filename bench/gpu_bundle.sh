@@ -6,7 +6,7 @@
 # .whl, .gl, .gpu and the built native libraries are ignored by git: name them among what travels.
 set -u
 mode="${1:-}"
-wheels="eclipse-zenoh gymnasium farama-notifications stable_baselines3 sb3-contrib trimesh python-fcl pyrender pyglet freetype-py embreex"
+wheels="eclipse-zenoh gymnasium farama-notifications stable_baselines3 sb3-contrib trimesh python-fcl pyrender pyglet freetype-py embreex pytest pluggy iniconfig pytest-timeout pygments"
 if [ "$mode" = prepare ]; then
   mkdir -p .whl .gpu .gl
   pins=""

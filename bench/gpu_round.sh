@@ -9,7 +9,8 @@
 # Steps: train (bench train with the host plan, both trainers), step (bench step at 256 and 1,024
 # agents, 1 to 14 workers), render (100 cameras: batch egl, per-camera egl, tracer), nav (the main
 # job with no flags for what time is left, at most NAV_LIMIT_S, then 100 deterministic episodes on
-# unseen garages), step128 / step1024 (bench step at that many agents alone),
+# unseen garages), step128 / step1024 (bench step at that many agents alone), gputests (pytest of
+# the tests that need a GPU),
 # profile (cProfile of the learner's main thread over a short default run).
 set -u
 OUT="${OUT:-bench/results/gpu}"
@@ -37,6 +38,14 @@ run() {  # run NAME LIMIT_S ARGS...: one visfly-dist command, SIGINT at its limi
 }
 step_train() {
   run train-plan 150 bench train --timesteps 131072 --algo ppo sb3-ppo --json "$WORK/train-plan.json"
+}
+step_gputests() {  # the tests that only a GPU runs (CUDA graphs, pinned copies)
+  echo "== gputests: pytest of the CUDA tests" | tee -a "$OUT/status.txt"
+  timeout -k 10 120 "$PY" -m pytest -q -p no:cacheprovider tests/training/test_graphed_policy.py \
+      tests/training/test_device_stage.py > "$WORK/gputests.log" 2>&1
+  echo "   exit $?" | tee -a "$OUT/status.txt"
+  tail -n 30 "$WORK/gputests.log"
+  pack
 }
 step_step128() {  # the main job's agents on GPU hosts (the loop's ratio to the simulator)
   run step-128 45 bench step --agents 128 --workers 1 4 --steps 100 --json "$WORK/step-128.json"
