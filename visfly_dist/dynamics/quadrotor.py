@@ -11,6 +11,7 @@ from visfly_dist.dynamics.airframe import Airframe, load_airframe
 from visfly_dist.dynamics.config import DynamicsConfig
 from visfly_dist.dynamics.controllers import CollectiveThrustBodyRate, PositionYaw, make_controller
 from visfly_dist.dynamics.model import GRAVITY, ROTOR_ROW, ROWS, RigidBodyModel, euler_step, rk4_step, unpack
+from visfly_dist.dynamics.native_step import NativeCtbrStep, load_dynamics
 from visfly_dist.dynamics.state import QuadState
 from visfly_dist.errors import ConfigError
 
@@ -18,9 +19,10 @@ Tensors = tuple[torch.Tensor, ...]
 RECOMPILE_LIMIT = 64
 ADJOINT_MAX_AGENTS = 3072
 NUMPY_STEP_MAX_AGENTS = 2048
-"""Up to this many agents, steps without gradients run the adjoint's NumPy forward too: per-op
-dispatch, not arithmetic, is their cost (no grad, one thread: 0.65 against 2.4 ms a step at 16
-agents, 1.2 against 3.0 at 100, 2.7 against 3.6 at 1,000; slower than torch at 3,000)."""
+"""Up to this many agents, steps without gradients run the adjoint's NumPy forward too when the native
+step is not built: per-op dispatch, not arithmetic, is their cost (no grad, one thread: 0.65 against
+2.4 ms a step at 16 agents, 1.2 against 3.0 at 100, 2.7 against 3.6 at 1,000; slower than torch at
+3,000)."""
 
 
 class Quadrotor:
@@ -44,7 +46,11 @@ class Quadrotor:
     (about 5x faster at 1,000 agents after a compile of a minute or so). With gradients, CTBR
     steps on the CPU are one autograd node with a hand-written reverse pass (``dynamics.adjoint``,
     on by default: ``config.adjoint``), unless airframe parameters require grad; without gradients,
-    its NumPy forward also runs CTBR steps of up to ``NUMPY_STEP_MAX_AGENTS`` agents.
+    the same CTBR steps (any number of agents) run the native forward ``dynamics/native`` built by
+    ``setup.sh`` (``dynamics.native_step``: plain loops over blocks of agents, in the state's dtype;
+    off with ``VISFLY_NATIVE_DYNAMICS=0``), or, when it is not built, the adjoint's NumPy forward up
+    to ``NUMPY_STEP_MAX_AGENTS`` agents. A step without grad took ~0.2 ms native against ~1.5 ms
+    NumPy at 256 agents (float32, one thread; NumPy's ~500 small ops are its cost).
 
     Args:
         config: simulation and controller settings.
@@ -83,13 +89,18 @@ class Quadrotor:
                                           config.position_origin)
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
         self._adjoint: CtbrStep | None = None
+        self._native: NativeCtbrStep | None = None
         # The adjoint runs on NumPy views of CPU tensors. Past about 3,000 agents its dense matmuls
         # cost more than autograd's bookkeeping saves (measured with grad: 0.75x autograd at 4,096,
-        # 1.1x at 3,000, 2-3x at 1,000, 5x at 100); compiled, autograd's own graph is used.
+        # 1.1x at 3,000, 2-3x at 1,000, 5x at 100); compiled, autograd's own graph is used. The
+        # native forward (steps without grad) takes the adjoint's constants, at any number of agents.
         if config.adjoint and isinstance(self.controller, CollectiveThrustBodyRate) and not config.compile and self.device.type == "cpu" \
-                and num_agents <= ADJOINT_MAX_AGENTS and not _any_requires_grad(self.model, self.controller):
-            self._adjoint = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
-                                     config.integrator == "rk4", config.ground)
+                and not _any_requires_grad(self.model, self.controller):
+            ctbr = CtbrStep(self.model, self.controller, config.substeps, config.sim_dt,
+                            config.integrator == "rk4", config.ground)
+            self._adjoint = ctbr if num_agents <= ADJOINT_MAX_AGENTS else None
+            lib, _ = load_dynamics()
+            self._native = None if lib is None else NativeCtbrStep(ctbr, lib)
         self._advance: Callable[..., Tensors] = self._advance_eager
         if config.compile:
             # All instances share one code object, and each batch size, grad mode and
@@ -156,11 +167,15 @@ class Quadrotor:
         if queue.shape[1] > 0:
             action, queue = queue[:, 0], torch.cat((queue[:, 1:], action[:, None]), dim=1)
         inputs = (state.pos, state.vel, state.quat, state.omega, state.rotor, action)
-        advance = self._advance
-        if self._adjoint is not None and (self.num_agents <= NUMPY_STEP_MAX_AGENTS
-                                          or torch.is_grad_enabled() and any(x.requires_grad for x in inputs)):
-            advance = self._advance_adjoint
-        pos, vel, quat, omega, rotor, contact = advance(*inputs)
+        grad = torch.is_grad_enabled() and any(x.requires_grad for x in inputs)
+        # the native forward declines inputs it does not take (None): they go the other ways
+        outputs = None if self._native is None or grad else self._native(*inputs[:5], action.to(self.dtype))
+        if outputs is None:
+            advance = self._advance
+            if self._adjoint is not None and (self.num_agents <= NUMPY_STEP_MAX_AGENTS or grad):
+                advance = self._advance_adjoint
+            outputs = advance(*inputs)
+        pos, vel, quat, omega, rotor, contact = outputs
         return QuadState(pos=pos, vel=vel, quat=quat, omega=omega, rotor=rotor,
                          ground_contact=contact, action_queue=queue)
 
