@@ -49,8 +49,9 @@ class Quadrotor:
     the same CTBR steps (any number of agents) run the native forward ``dynamics/native`` built by
     ``setup.sh`` (``dynamics.native_step``: plain loops over blocks of agents, in the state's dtype;
     off with ``VISFLY_NATIVE_DYNAMICS=0``), or, when it is not built, the adjoint's NumPy forward up
-    to ``NUMPY_STEP_MAX_AGENTS`` agents. A step without grad took ~0.2 ms native against ~1.5 ms
-    NumPy at 256 agents (float32, one thread; NumPy's ~500 small ops are its cost).
+    to ``NUMPY_STEP_MAX_AGENTS`` agents. A step without grad (float32, one thread, busy 2-core
+    machine) took 0.2 ms native against 2.1-2.4 ms NumPy at 256 agents, 0.6-1.1 against 4-9 ms at
+    1,024: NumPy's ~500 small ops a control step are its cost.
 
     Args:
         config: simulation and controller settings.
