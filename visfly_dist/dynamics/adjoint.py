@@ -242,8 +242,9 @@ def ctbr_step(pos: torch.Tensor, vel: torch.Tensor, quat: torch.Tensor, omega: t
     """One CTBR control step on batch-first CPU tensors, unrecorded: the next
     ``(pos, vel, quat, omega, rotor, contact)`` and the tape for :meth:`CtbrStep.backward`.
 
-    Steps without gradients call it directly (``Quadrotor.step``), skipping ``autograd.Function``'s
-    bookkeeping; :class:`CtbrStepFunction` wraps it with the reverse pass.
+    Steps without gradients call it directly (``Quadrotor.step``, where the native forward of
+    ``dynamics.native_step`` is not built), skipping ``autograd.Function``'s bookkeeping;
+    :class:`CtbrStepFunction` wraps it with the reverse pass.
     """
     s = np.concatenate([x.detach().numpy() for x in (pos, vel, quat, omega, rotor)], axis=1).T
     with _one_blas_thread(s.shape[1]):
