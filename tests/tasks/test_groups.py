@@ -8,6 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from tests.tasks.helpers import SETTINGS
+from visfly_dist import make_env
+
 STEPS = 6
 
 
@@ -18,53 +21,96 @@ def _actions(env, seed: int) -> torch.Tensor:
     return torch.as_tensor(np.clip(hover + rng.uniform(-0.3, 0.3, (STEPS, env.num_envs, 4)), -1, 1), dtype=torch.float32)
 
 
-def _plain(env, actions: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _plain(env, actions: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]:
+    """Rewards, observations, ends and terminal observations, ``(STEPS, N, ...)`` each."""
     env.seed(11)
     env.reset()
-    rewards, states, ended = [], [], []
+    rewards, ended = [], []
+    observations: dict[str, list[np.ndarray]] = {}
+    terminal: dict[str, list[np.ndarray]] = {}
     for t in range(STEPS):
-        obs, reward, terminated, truncated, _ = env.step_tensor(actions[t])
+        obs, reward, terminated, truncated, info = env.step_tensor(actions[t])
         rewards.append(reward.detach().numpy())
-        states.append(obs["state"].numpy())
         ended.append((terminated | truncated).numpy())
-    return np.array(rewards), np.array(states), np.array(ended)
+        for k, v in obs.items():
+            observations.setdefault(k, []).append(v.detach().numpy().copy())
+        for k, v in info["terminal_observation"].items():
+            terminal.setdefault(k, []).append(v.detach().numpy().copy())
+    stack = lambda d: {k: np.array(v) for k, v in d.items()}  # noqa: E731
+    return np.array(rewards), stack(observations), np.array(ended), stack(terminal)
 
 
-def _grouped(env, actions: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each group sent again as soon as its step is in, while the other is still in flight."""
+def _grouped(env, actions: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]:
+    """Each group sent again as soon as its step is in, while the other is still in flight. What
+    ``recv`` returned is kept as it was (later steps write nothing into it)."""
     env.seed(11)
     env.reset()
     groups = [torch.tensor([0]), torch.tensor([1])]
-    rewards, states = np.zeros((STEPS, 2)), np.zeros((STEPS, 2, 13))
+    rewards = np.zeros((STEPS, 2))
     ended = np.zeros((STEPS, 2), dtype=bool)
+    observations: dict[str, np.ndarray] = {}
+    terminal: dict[str, np.ndarray] = {}
+    kept = []
     steps = [0, 0]
     for g, ids in enumerate(groups):
         env.send(actions[0, ids], ids)
     in_flight = 2
     while in_flight:
-        (obs, reward, terminated, truncated, _), ids = env.recv()
+        result, ids = env.recv()
+        obs, reward, terminated, truncated, info = result
         g = int(ids[0])
         t = steps[g]
         rewards[t, g] = float(reward[0])
-        states[t, g] = obs["state"][0].numpy()
         ended[t, g] = bool((terminated | truncated)[0])
+        for out, entries in ((observations, obs), (terminal, info["terminal_observation"])):
+            for k, v in entries.items():
+                out.setdefault(k, np.zeros((STEPS, 2, *v.shape[1:]), v.detach().numpy().dtype))[t, g] = v[0].detach().numpy()
+        kept.append((obs, info["terminal_observation"], {k: v.clone() for k, v in obs.items()},
+                     {k: v.clone() for k, v in info["terminal_observation"].items()}))
         steps[g] += 1
         if steps[g] < STEPS:
             env.send(actions[steps[g], ids], ids)
         else:
             in_flight -= 1
-    return rewards, states, ended
+    for obs, term, obs_then, term_then in kept:
+        for now, then in ((obs, obs_then), (term, term_then)):
+            for k in then:
+                assert torch.equal(now[k], then[k]), f"{k} returned by recv changed afterwards"
+    return rewards, observations, ended, terminal
 
 
 @pytest.mark.parametrize("task", ["navigation", "racing", "hover"])
 def test_two_groups_in_flight_get_the_rewards_of_the_plain_step(envs, task):
     env = envs(task)
     actions = _actions(env, seed=3)
-    rewards, states, ended = _plain(env, actions)
-    grouped_rewards, grouped_states, grouped_ended = _grouped(env, actions)
+    rewards, observations, ended, terminal = _plain(env, actions)
+    grouped_rewards, grouped_observations, grouped_ended, grouped_terminal = _grouped(env, actions)
     live = ~np.cumsum(ended, axis=0).astype(bool) | ended   # up to and including each agent's first end
     assert live[:3].all(), "the agents should fly a few steps before any episode ends"
     assert (np.abs(rewards[live]) > 1e-6).any()
-    np.testing.assert_allclose(grouped_states[live], states[live], atol=1e-5)
+    assert sorted(grouped_observations) == sorted(observations)
+    for k, v in observations.items():  # images included: a group's rows merged into the frame
+        np.testing.assert_allclose(grouped_observations[k][live], v[live], atol=1e-5, err_msg=k)
+        np.testing.assert_allclose(grouped_terminal[k][live], terminal[k][live], atol=1e-5, err_msg=k)
     np.testing.assert_allclose(grouped_rewards[live], rewards[live], atol=1e-5)
     np.testing.assert_array_equal(grouped_ended[live], ended[live])
+
+
+def test_groups_whose_episodes_end_get_the_first_views_and_terminal_observations_of_the_plain_step():
+    """Episodes cut every two steps: each group's reset merges fresh rows into the env's frame
+    while the other group is in flight; every step matches the plain step, reset rows included."""
+    settings = dict(SETTINGS["navigation"])
+    env = make_env("navigation", num_envs=settings.pop("num_envs"), seed=1, max_episode_steps=2, **settings)
+    try:
+        actions = _actions(env, seed=5)
+        rewards, observations, ended, terminal = _plain(env, actions)
+        grouped_rewards, grouped_observations, grouped_ended, grouped_terminal = _grouped(env, actions)
+    finally:
+        env.close()
+    assert ended[1].all() and ended[3].all()
+    for k, v in observations.items():
+        assert not np.array_equal(terminal[k][1], v[1]), f"{k}: the first view of a new episode is not the terminal one"
+        np.testing.assert_allclose(grouped_observations[k], v, atol=1e-5, err_msg=k)
+        np.testing.assert_allclose(grouped_terminal[k], terminal[k], atol=1e-5, err_msg=k)
+    np.testing.assert_allclose(grouped_rewards, rewards, atol=1e-5)
+    np.testing.assert_array_equal(grouped_ended, ended)

@@ -163,6 +163,7 @@ class TensorEnv:
         self.state: QuadState = self.quad.initial_state(torch.zeros(n, 3, device=self.device))
         self.frame: SensorFrame | None = None
         self._image_buffers = BufferPool()  # merged images of reset steps, reused once nobody holds them
+        self._own_frame: SensorFrame | None = None  # a frame whose images only the env refers to (see _merge)
         self.frame_timings: dict[str, float] = {}
         self.step_timings: dict[str, float] = {}
         # Each agent's next start, drawn ahead so its first view travels with an earlier step.
@@ -334,9 +335,12 @@ class TensorEnv:
             self.precompute()  # the workers render meanwhile
         return _InFlight(ticket, group, members, held, before, pending, full, spawn_agents, t0, t1 - t0, sim_time)
 
-    def _finish(self, flight: _InFlight) -> StepResult:
+    def _finish(self, flight: _InFlight, ids: torch.Tensor | None = None) -> StepResult:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
-        rows of ``flight.group`` are this step's (the others are zero / False)."""
+        rows of ``flight.group`` are this step's (the others are zero / False).
+
+        ``ids``: the group's agents (``recv``): only their rows are returned, copies, so the frame's
+        images stay the env's own and are merged into in place (:meth:`_merge`)."""
         t0 = time.perf_counter()
         self.sim_time = flight.sim_time  # the task hooks see this group's time
         obs, spawn_obs = self.aggregator.collect(flight.ticket)
@@ -346,7 +350,10 @@ class TensorEnv:
         self.frame_timings = dict(obs.timings)
         rows = self._frame(obs)
         everyone = len(flight.ticket.agents) == self.num_envs
-        self.frame = rows if everyone or self.frame is None else self.frame.scatter(flight.group.nonzero().squeeze(1), rows, self._image_buffers)  # noqa: E501
+        if everyone or self.frame is None:
+            self.frame = rows
+        else:
+            self.frame = self._merge(flight.group.nonzero().squeeze(1) if ids is None else ids, rows, own=ids is not None)
         t1 = time.perf_counter()
         group, full, held = flight.group, flight.full, flight.held
         if flight.pending is not None:
@@ -381,19 +388,28 @@ class TensorEnv:
             swapped = swapped & ~terminated
             truncated = truncated | swapped
         collision, out_of_bounds = self.frame.collision, self.out_of_bounds()
-        info = {"terminal_observation": observation, "success": self.success, "lost": lost,
-                "held": self._no_one if paused is None else paused,
-                "collision": collision if full else collision & group,
-                "out_of_bounds": out_of_bounds if full else out_of_bounds & group,
-                "swapped": swapped, "episode_return": self.episode_return,
-                "episode_length": self.episode_step}
+        info: dict[str, Any] = {"terminal_observation": observation, "success": self.success, "lost": lost,
+                                "held": self._no_one if paused is None else paused,
+                                "collision": collision if full else collision & group,
+                                "out_of_bounds": out_of_bounds if full else out_of_bounds & group,
+                                "swapped": swapped, "episode_return": self.episode_return,
+                                "episode_length": self.episode_step}
         done = terminated | truncated
-        if bool(done.any()):
-            observation = self._reset_agents(done, observation, ended=True)
+        reset = bool(done.any())
+        # the group's terminal rows are taken before a reset writes the new rows into the frame's images
+        terminal = _rows(observation, ids) if ids is not None and reset else None
+        if reset:
+            observation = self._reset_agents(done, observation, ended=True, own=ids is not None)
         self.step_timings = {**self.frame_timings, "physics_s": flight.physics_s,
                              "observe_s": self.frame_timings.get("total_s", t1 - t0),
                              "total_s": time.perf_counter() - flight.started}
-        return StepResult(observation, reward, terminated, truncated, info)
+        if ids is None:
+            return StepResult(observation, reward, terminated, truncated, info)
+        picked = _rows(observation, ids)
+        picked_info: dict[str, Any] = _rows({k: v for k, v in info.items() if k != "terminal_observation"}, ids)
+        picked_info["terminal_observation"] = dict(picked) if terminal is None else terminal  # no reset: the same rows
+        return StepResult(picked, reward.index_select(0, ids), terminated.index_select(0, ids),
+                          truncated.index_select(0, ids), picked_info)
 
     def _hold_lost(self, lost_rows: np.ndarray, flight: _InFlight) -> torch.Tensor | None:
         """``(N,)`` bool: the agents of this step with no fresh observation that are held (``None``
@@ -450,16 +466,9 @@ class TensorEnv:
             raise ConfigError("recv() without a send() in flight")
         i = self.aggregator.wait_any([f.ticket for f in self._in_flight], timeout_s)
         flight = self._in_flight.pop(0 if i is None else i)  # on timeout, the oldest (its collect is bounded)
-        with torch.set_grad_enabled(self.config.requires_grad):
-            result = self._finish(flight)
         ids = flight.group.nonzero().squeeze(1)
-        def rows(v: torch.Tensor) -> torch.Tensor:
-            return v.index_select(0, ids)  # images: several times faster than v[ids]
-
-        pick: dict[str, Any] = {k: rows(v) for k, v in result.info.items() if k != "terminal_observation"}
-        pick["terminal_observation"] = {k: rows(v) for k, v in result.info["terminal_observation"].items()}
-        return StepResult({k: rows(v) for k, v in result.observation.items()}, rows(result.reward),
-                          rows(result.terminated), rows(result.truncated), pick), ids
+        with torch.set_grad_enabled(self.config.requires_grad):
+            return self._finish(flight, ids), ids
 
     def _take_swapped(self, members: np.ndarray) -> torch.Tensor | None:
         """``(N,)`` bool: agents of ``members`` whose scene changed under their episode (None if
@@ -527,10 +536,11 @@ class TensorEnv:
         return obs
 
     def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None,
-                      ended: bool = False) -> dict[str, torch.Tensor]:
+                      ended: bool = False, own: bool = False) -> dict[str, torch.Tensor]:
         """Reset the agents in ``mask`` to their drawn next start; return ``observation`` with their
         rows replaced by the first view of their new episode (rendered ahead, or now if it is not).
-        ``ended``: their episodes ended (they count towards scene swaps; a reset asked for does not)."""
+        ``ended``: their episodes ended (they count towards scene swaps; a reset asked for does not).
+        ``own``: neither ``observation`` nor the result is handed out whole (:meth:`_merge`)."""
         idx = mask.nonzero().squeeze(1)
         idx_np = idx.cpu().numpy()
         chosen = np.zeros(self.num_envs, dtype=bool)
@@ -552,18 +562,34 @@ class TensorEnv:
         if observation is None or before is None:
             self.frame = rows
         else:
-            self.frame = before.scatter(idx, rows, self._image_buffers)
+            self.frame = self._merge(idx, rows, own)
         after = self.frame
         self._draw_next_starts(idx)
         fresh_obs = self._observation()
         if observation is None or before is None:
             return fresh_obs
         # An entry that is the frame's image before and after the reset already holds the old rows
-        # outside ``mask`` (scatter wrote the new rows into a copy): no second select of every image.
+        # outside ``mask`` (scatter wrote the new rows into a copy, or in place): no second select of
+        # every image.
         passed = {k for k, v in fresh_obs.items()
                   if v is after.images.get(k) and observation[k] is before.images.get(k)}
         return {k: v if k in passed else torch.where(mask.reshape((-1,) + (1,) * (v.dim() - 1)), v, observation[k])
                 for k, v in fresh_obs.items()}
+
+    def _merge(self, index: torch.Tensor, rows: SensorFrame, own: bool) -> SensorFrame:
+        """``self.frame`` with its rows ``index`` from ``rows``.
+
+        ``own``: the send/recv path, which hands out copies of the group's rows only, never the
+        frame's images: the merged frame's images are then the env's alone, and the next merge on
+        that path writes into them in place (no copy of every agent's images per group step). Any
+        other merge copies, so a frame handed out (a plain step's or a reset's observation) is never
+        written over. Task hooks must not keep the frame's images across steps (copy what they keep).
+        """
+        frame = self.frame
+        assert frame is not None, "a merge follows the first observation"
+        merged = frame.scatter(index, rows, self._image_buffers, in_place=own and frame is self._own_frame)
+        self._own_frame = merged if own else None
+        return merged
 
     def _agent_bounds(self) -> torch.Tensor:
         return torch.as_tensor(np.asarray(self.aggregator.agent_bounds(), dtype=np.float32), device=self.device)
@@ -654,6 +680,11 @@ class TensorEnv:
     def _check_open(self) -> None:
         if self._closed:
             raise ConfigError("this env is closed; build a new one (make_env) to keep going")
+
+
+def _rows(tensors: dict[str, torch.Tensor], ids: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Rows ``ids`` of each entry, copies (``index_select``: images several times faster than ``v[ids]``)."""
+    return {k: v.index_select(0, ids) for k, v in tensors.items()}
 
 
 def camera_space(cam: CameraSpec) -> spaces.Box:

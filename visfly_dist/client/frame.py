@@ -58,17 +58,22 @@ class SensorFrame:
             lost=torch.as_tensor(np.asarray(obs.lost, dtype=bool), device=device),
         )
 
-    def scatter(self, index: torch.Tensor, rows: "SensorFrame", buffers: BufferPool | None = None) -> "SensorFrame":
+    def scatter(self, index: torch.Tensor, rows: "SensorFrame", buffers: BufferPool | None = None,
+                in_place: bool = False) -> "SensorFrame":
         """A frame whose rows ``index`` come from ``rows`` (which holds exactly those rows).
 
-        This frame is left as it is. With ``buffers`` the merged CPU images are written into a
-        buffer of that pool (its pages already mapped) instead of a fresh tensor.
+        This frame is left as it is, unless ``in_place``: then its images are written into (the
+        caller owns them: nothing else refers to them) and the new frame shares them; the small
+        per-agent tensors are copied either way. With ``buffers`` the merged CPU images are written
+        into a buffer of that pool (its pages already mapped) instead of a fresh tensor.
         """
 
         def put(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
             return full.clone().index_copy_(0, index, part)  # index_copy_: images ~8x faster than out[index] =
 
         def put_image(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+            if in_place:
+                return full.index_copy_(0, index, part)
             if buffers is None or full.device.type != "cpu":
                 return put(full, part)
             return buffers.take(tuple(full.shape), full.dtype).copy_(full).index_copy_(0, index, part)
