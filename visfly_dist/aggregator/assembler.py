@@ -113,33 +113,56 @@ def reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:
             for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
 
 
+PENDING_LIMIT = 2
+"""Partial observations :class:`LastGood` keeps as they are before copying the oldest in: two
+groups stepped in turn each replace their own, so neither is ever copied."""
+
+
 class LastGood:
     """Each agent's last good data: what a lost agent is given (blank until it was served once).
 
-    A full observation is kept as it is (no copy). A partial one is written into a private copy,
-    never into arrays already handed out to a caller.
+    A full observation is kept as it is (no copy). So are the last :data:`PENDING_LIMIT` partial
+    ones (each step of a group replaces the group's previous one, whose rows it all covers): they
+    are written into a private copy, in the order they came, only when a lost agent needs it or
+    when more come; never into arrays already handed out to a caller. Observations handed out are
+    read only, to the aggregator and its callers alike, so keeping them is keeping their data.
     """
 
     def __init__(self, cameras: Sequence[CameraSpec], num_agents: int, search_radius: float) -> None:
         self.num_agents = num_agents
         self.obs = blank_observation(cameras, num_agents, search_radius)
         self._private = True  # False while obs is an observation handed out by collect()
+        self._pending: list[tuple[Observation, np.ndarray, np.ndarray]] = []  # (obs, rows, agents), oldest first
 
     def fill(self, out: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
         """Write ``agents``' last good data into ``out``'s ``rows`` (marked lost)."""
+        self._flush(len(self._pending))
         copy_rows(out, rows, self.obs, agents)
 
     def remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
         """Keep ``obs``' fresh ``rows`` as the last good data of ``agents``."""
         if len(agents) == self.num_agents and np.array_equal(agents, np.arange(self.num_agents)):
-            self.obs, self._private = obs, False
+            self.obs, self._private, self._pending = obs, False, []
             return
         if not len(rows):
+            return
+        covered = np.zeros(self.num_agents, dtype=bool)
+        covered[agents] = True
+        # an earlier one whose agents this one all covers would only be written over
+        self._pending = [p for p in self._pending if not covered[p[2]].all()]
+        self._pending.append((obs, rows, agents))
+        self._flush(len(self._pending) - PENDING_LIMIT)
+
+    def _flush(self, count: int) -> None:
+        """Write the oldest ``count`` pending observations into the private copy, in order."""
+        if count <= 0:
             return
         if not self._private:
             self.obs, self._private = self.obs.take(np.arange(self.num_agents)), True
         last = self.obs
-        for name, image in last.images.items():
-            image[agents] = obs.images[name][rows]
-        for key in QUERY_FIELDS:
-            getattr(last, key)[agents] = getattr(obs, key)[rows]
+        for obs, rows, agents in self._pending[:count]:
+            for name, image in last.images.items():
+                image[agents] = obs.images[name][rows]
+            for key in QUERY_FIELDS:
+                getattr(last, key)[agents] = getattr(obs, key)[rows]
+        del self._pending[:count]
