@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Sequence
 
 from visfly_dist.scenes.scene import Scene
-from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source
+from visfly_dist.scenes.source_syntax import GEN_PREFIX
+from visfly_dist.scenes.sources import resolve_source
 
 log = logging.getLogger(__name__)
 

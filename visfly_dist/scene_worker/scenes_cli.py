@@ -69,7 +69,8 @@ def preview_command(args: argparse.Namespace) -> int:
 
 def _preview(args: argparse.Namespace) -> int:
     from visfly_dist.scene_worker.preview import preview_scene
-    from visfly_dist.scenes.sources import GEN_PREFIX, resolve_source, split_path_source
+    from visfly_dist.scenes.source_syntax import GEN_PREFIX, split_path_source
+    from visfly_dist.scenes.sources import resolve_source
     from visfly_dist.scenes.storage import load_scene
 
     if args.scene.startswith(GEN_PREFIX):

@@ -22,9 +22,7 @@ import trimesh
 from visfly_dist.errors import SceneError
 from visfly_dist.scenes.paths import check_inside
 from visfly_dist.scenes.scene import Scene, SceneObject
-
-MESH_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl")
-UP_AXES = ("y", "z")
+from visfly_dist.scenes.source_syntax import MESH_SUFFIXES, UP_AXES
 
 # Rotation +90 deg about x: (x, y, z) -> (x, -z, y). Takes a y-up frame (glTF, Habitat) to z-up.
 Y_UP_TO_Z_UP = np.array(

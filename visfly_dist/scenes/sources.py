@@ -19,15 +19,12 @@ from urllib.parse import parse_qsl
 
 from visfly_dist.errors import SceneError
 from visfly_dist.scenes.generators import generate_scene, parse_value
-from visfly_dist.scenes.meshes import MESH_SUFFIXES, UP_AXES
 from visfly_dist.scenes.paths import PathLike, is_inside, normalize_roots
 from visfly_dist.scenes.scene import Scene
+from visfly_dist.scenes.source_syntax import GEN_PREFIX, split_path_source
 from visfly_dist.scenes.storage import load_scene
 
-GEN_PREFIX = "gen:"
 GENERATED_CACHE_SIZE = 8
-PATH_OPTIONS = {"up": UP_AXES}
-"""Options a mesh-file source may carry after ``?``, with their accepted values."""
 
 
 def parse_gen_spec(spec: str) -> tuple[str, int, dict[str, Any]]:
@@ -51,31 +48,6 @@ def parse_gen_spec(spec: str) -> tuple[str, int, dict[str, Any]]:
     if not isinstance(seed, int):
         raise SceneError(f"scene spec {spec!r}: seed={seed!r} must be an int >= 0")
     return kind, seed, params
-
-
-def split_path_source(source: str) -> tuple[str, dict[str, str]]:
-    """Split a path source into the path and its validated options (module docstring).
-
-    ``"rooms/hall.glb?up=z"`` gives ``("rooms/hall.glb", {"up": "z"})``; a source without options
-    gives ``(source, {})``.
-
-    Raises:
-        SceneError: malformed options, an unknown option or value, or options on a non-mesh path.
-    """
-    path, sep, query = source.rpartition("?")
-    if not sep or "/" in query or not ("=" in query or path.lower().endswith(MESH_SUFFIXES)):
-        return source, {}
-    accepted = ", ".join(f"{k}={'|'.join(v)}" for k, v in PATH_OPTIONS.items())
-    if not path.lower().endswith(MESH_SUFFIXES):
-        raise SceneError(f"scene source {source!r}: options ({accepted}) apply to mesh files {list(MESH_SUFFIXES)} only")
-    options: dict[str, str] = {}
-    for item in query.split("&"):
-        key, eq, value = item.partition("=")
-        if not eq or key not in PATH_OPTIONS or value not in PATH_OPTIONS[key] or key in options:
-            raise SceneError(f"scene source {source!r}: option {item!r} is not valid; accepted: {accepted}, "
-                             f"each at most once, joined by '&', e.g. 'room.glb?up=z'")
-        options[key] = value
-    return path, options
 
 
 def resolve_source(source: str, roots: Iterable[PathLike]) -> Scene:
