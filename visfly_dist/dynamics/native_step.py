@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import os
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,7 @@ import torch
 
 from visfly_dist.dynamics.adjoint import CtbrStep
 from visfly_dist.dynamics.model import ROWS
+from visfly_dist.native import load_native
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_dynamics.so"
 LIBRARY_VERSION = 1
@@ -41,23 +41,15 @@ class _Params(ctypes.Structure):
 @functools.lru_cache(maxsize=1)
 def load_dynamics() -> tuple[ctypes.CDLL | None, str]:
     """The loaded library, or ``None`` and the reason it is not used."""
-    if os.environ.get(DISABLE_ENV, "1") == "0":
-        return None, f"disabled by {DISABLE_ENV}=0"
-    if not LIBRARY_PATH.exists():
-        return None, f"{LIBRARY_PATH} not built (make -C {LIBRARY_PATH.parent}; needs g++)"
-    try:
-        lib = ctypes.CDLL(str(LIBRARY_PATH))
-        lib.vf_dynamics_version.restype = ctypes.c_int
-        if lib.vf_dynamics_version() != LIBRARY_VERSION:
-            return None, f"{LIBRARY_PATH} is version {lib.vf_dynamics_version()}, expected {LIBRARY_VERSION}; rebuild it"
-        for name in ("vf_ctbr_step_f32", "vf_ctbr_step_f64"):
-            fn = getattr(lib, name)
-            fn.restype = None
-            fn.argtypes = [ctypes.POINTER(_Params), ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                           ctypes.c_void_p, ctypes.c_int64]
-    except (OSError, AttributeError) as exc:
-        return None, f"{LIBRARY_PATH} failed to load: {exc}"
-    return lib, "loaded"
+    return load_native(LIBRARY_PATH, "vf_dynamics_version", LIBRARY_VERSION, DISABLE_ENV, "g++", _declare)
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    for name in ("vf_ctbr_step_f32", "vf_ctbr_step_f64"):
+        fn = getattr(lib, name)
+        fn.restype = None
+        fn.argtypes = [ctypes.POINTER(_Params), ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                       ctypes.c_void_p, ctypes.c_int64]
 
 
 def _terms(entries: list[tuple[int, int, int, float]], dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:

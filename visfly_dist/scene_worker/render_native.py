@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -25,6 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from visfly_dist.errors import ConfigError
+from visfly_dist.native import load_native
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_tracer.so"
 LIBRARY_VERSION = 5
@@ -57,45 +57,37 @@ class _Batch(ctypes.Structure):
 @functools.lru_cache(maxsize=1)
 def load_library() -> tuple[ctypes.CDLL | None, str]:
     """The loaded tracer library, or ``None`` and the reason it is not used."""
-    if os.environ.get(DISABLE_ENV, "1") == "0":
-        return None, f"disabled by {DISABLE_ENV}=0"
-    if not LIBRARY_PATH.exists():
-        return None, f"{LIBRARY_PATH} not built (make -C {LIBRARY_PATH.parent}; needs g++ and libembree-dev)"
-    try:
-        lib = ctypes.CDLL(str(LIBRARY_PATH))
-        lib.vf_version.restype = ctypes.c_int
-        if lib.vf_version() != LIBRARY_VERSION:
-            return None, f"{LIBRARY_PATH} is version {lib.vf_version()}, expected {LIBRARY_VERSION}; rebuild it"
-        lib.vf_last_error.restype = ctypes.c_char_p
-        lib.vf_scene_new.restype = ctypes.c_void_p
-        lib.vf_scene_new.argtypes = [_f32p, ctypes.c_int64]
-        lib.vf_scene_free.restype = None
-        lib.vf_scene_free.argtypes = [ctypes.c_void_p]
-        lib.vf_instanced_new.restype = ctypes.c_void_p
-        lib.vf_instanced_new.argtypes = [_f32p, ctypes.POINTER(ctypes.c_int64), ctypes.c_int32]
-        lib.vf_instanced_free.restype = None
-        lib.vf_instanced_free.argtypes = [ctypes.c_void_p]
-        lib.vf_instanced_move.restype = ctypes.c_int
-        lib.vf_instanced_move.argtypes = [ctypes.c_void_p, _f32p]
-        lib.vf_instanced_scene.restype = ctypes.c_void_p
-        lib.vf_instanced_scene.argtypes = [ctypes.c_void_p]
-        lib.vf_instanced_moving.restype = ctypes.c_void_p
-        lib.vf_instanced_moving.argtypes = [ctypes.c_void_p]
-        lib.vf_trace.restype = ctypes.c_int
-        lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
-        lib.vf_points_new.restype = ctypes.c_void_p
-        lib.vf_points_new.argtypes = [_f64p, ctypes.c_int64, _i32p, ctypes.c_int64]
-        lib.vf_points_free.restype = None
-        lib.vf_points_free.argtypes = [ctypes.c_void_p]
-        lib.vf_closest.restype = ctypes.c_int
-        lib.vf_closest.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p,
-                                   ctypes.c_void_p]   # raw addresses: data_as() would cost more than one query
-        lib.vf_closest_many.restype = ctypes.c_int
-        lib.vf_closest_many.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32,
-                                        ctypes.c_void_p, ctypes.c_void_p]
-    except (OSError, AttributeError) as exc:
-        return None, f"{LIBRARY_PATH} failed to load: {exc}"
-    return lib, "loaded"
+    return load_native(LIBRARY_PATH, "vf_version", LIBRARY_VERSION, DISABLE_ENV, "g++ and libembree-dev", _declare)
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    lib.vf_last_error.restype = ctypes.c_char_p
+    lib.vf_scene_new.restype = ctypes.c_void_p
+    lib.vf_scene_new.argtypes = [_f32p, ctypes.c_int64]
+    lib.vf_scene_free.restype = None
+    lib.vf_scene_free.argtypes = [ctypes.c_void_p]
+    lib.vf_instanced_new.restype = ctypes.c_void_p
+    lib.vf_instanced_new.argtypes = [_f32p, ctypes.POINTER(ctypes.c_int64), ctypes.c_int32]
+    lib.vf_instanced_free.restype = None
+    lib.vf_instanced_free.argtypes = [ctypes.c_void_p]
+    lib.vf_instanced_move.restype = ctypes.c_int
+    lib.vf_instanced_move.argtypes = [ctypes.c_void_p, _f32p]
+    lib.vf_instanced_scene.restype = ctypes.c_void_p
+    lib.vf_instanced_scene.argtypes = [ctypes.c_void_p]
+    lib.vf_instanced_moving.restype = ctypes.c_void_p
+    lib.vf_instanced_moving.argtypes = [ctypes.c_void_p]
+    lib.vf_trace.restype = ctypes.c_int
+    lib.vf_trace.argtypes = [ctypes.POINTER(_Batch), ctypes.c_int32, ctypes.c_int32]
+    lib.vf_points_new.restype = ctypes.c_void_p
+    lib.vf_points_new.argtypes = [_f64p, ctypes.c_int64, _i32p, ctypes.c_int64]
+    lib.vf_points_free.restype = None
+    lib.vf_points_free.argtypes = [ctypes.c_void_p]
+    lib.vf_closest.restype = ctypes.c_int
+    lib.vf_closest.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p,
+                               ctypes.c_void_p]   # raw addresses: data_as() would cost more than one query
+    lib.vf_closest_many.restype = ctypes.c_int
+    lib.vf_closest_many.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32,
+                                    ctypes.c_void_p, ctypes.c_void_p]
 
 
 def available() -> bool:
