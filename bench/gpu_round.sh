@@ -9,7 +9,8 @@
 # Steps: train (bench train with the host plan, both trainers), step (bench step at 256 and 1,024
 # agents, 1 to 14 workers), render (100 cameras: batch egl, per-camera egl, tracer), nav (the main
 # job with no flags for what time is left, at most NAV_LIMIT_S, then 100 deterministic episodes on
-# unseen garages), step128 / step1024 (bench step at that many agents alone), gputests (pytest of
+# unseen garages), step128 / step1024 (bench step at that many agents alone; step1024same with
+# the same 56 scenes at 1, 8 and 14 workers), gputests (pytest of
 # the tests that need a GPU),
 # profile (cProfile of the learner's main thread over a short default run).
 set -u
@@ -52,6 +53,9 @@ step_step128() {  # the main job's agents on GPU hosts (the loop's ratio to the 
 }
 step_step1024() {
   run step-1024 100 bench step --agents 1024 --workers 1 8 14 --steps 40 --json "$WORK/step-1024.json"
+}
+step_step1024same() {  # the same 56 scenes at every worker count: the workers' scaling, not the garages' spread
+  run step-1024-same 90 bench step --agents 1024 --workers 1 8 14 --scenes 56 --steps 40 --json "$WORK/step-1024-same.json"
 }
 step_step() {
   run step-256 70 bench step --agents 256 --workers 1 4 --steps 60 --json "$WORK/step-256.json"
