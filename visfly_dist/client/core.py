@@ -73,7 +73,7 @@ class _InFlight:
     members: np.ndarray
     held: torch.Tensor
     before: QuadState  # the state before this step: where an agent whose worker fails is held
-    pending: QuadState | None  # the group's state after this step, taken in with it (None: already in place)
+    pending: QuadState | None  # the state after this step, whose group rows _finish takes in (None: already in place)
     full: bool
     spawn_agents: np.ndarray
     started: float
@@ -118,7 +118,8 @@ class TensorEnv:
 
     Attributes available to the hooks:
         state: :class:`QuadState` of all agents.
-        frame: :class:`SensorFrame` of the last observation (images, collision, nearest, ...).
+        frame: :class:`SensorFrame` of the last observation (images, collision, nearest, ...); with
+            ``send``/``recv`` its images are written in place: copy what a hook keeps across steps.
         bounds: ``(N, 2, 3)`` flight box of each agent's scene.
         actions: ``(N, 4)`` last actions in ``[-1, 1]``.
         episode_step: ``(N,)`` steps taken in the current episode.
@@ -313,10 +314,14 @@ class TensorEnv:
         full = len(agents) == self.num_envs and hold is None  # every agent moves: no masking needed
         before = self.state
         stepped = self.quad.step(self.state, actions)
-        after = stepped if full or bool((group & ~held).all()) else QuadState.where(group & ~held, stepped, self.state)
-        # A group's new state joins self.state when its step is taken in (_finish): until then the task
-        # hooks of other groups' steps see its agents as they were at their last finished step.
         alone = len(agents) == self.num_envs  # no other group can be in flight: in place now
+        # A group's new state joins self.state when its step is taken in (_finish): until then the task
+        # hooks of other groups' steps see its agents as they were at their last finished step. With
+        # no one held, _finish takes the group's rows of ``stepped`` (its other rows are never read).
+        if full or (not alone and hold is None) or bool((group & ~held).all()):
+            after = stepped
+        else:
+            after = QuadState.where(group & ~held, stepped, self.state)
         pending = None if alone else after
         if alone:
             self.state = after
