@@ -69,6 +69,37 @@ def test_graph_matches_the_eager_policy_and_follows_its_weights() -> None:
 
 
 @cuda
+def test_graph_follows_every_parameter_updated_in_place() -> None:
+    """The image trunk's phase kernel is kept on the Python side between eager calls; a graph must
+    not keep the one of its capture (that froze the first convolution of the rollout's policy)."""
+    policy, obs = _policy("cuda"), _obs(64, "cuda")
+    forward = GraphedForward(policy, log=pytest.fail)
+    g = torch.Generator(device="cuda").manual_seed(7)
+    with torch.no_grad():
+        forward(obs)
+        for parameter in policy.parameters():  # an optimizer step, roughly: everything moves in place
+            parameter.add_(0.05 * torch.randn(parameter.shape, device="cuda", generator=g))
+        actions, values, log_probs = forward(obs)
+        expected_values, expected_log_probs, _ = policy.evaluate_actions(obs, actions)
+    torch.testing.assert_close(values, expected_values, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(log_probs, expected_log_probs, rtol=1e-4, atol=1e-4)
+    assert forward.verify() and forward._graphs
+
+
+@cuda
+def test_verify_drops_graphs_that_read_stale_parameters() -> None:
+    policy, lines = _policy("cuda"), []
+    forward = GraphedForward(policy, log=lines.append)
+    with torch.no_grad():
+        forward(_obs(16, "cuda"))
+        assert forward.verify()
+        policy.value_net.weight.data = policy.value_net.weight.data + 1.0  # new storage: the graph reads the old one
+        assert not forward.verify()
+        assert not forward._graphs and forward.disabled and len(lines) == 1
+        torch.testing.assert_close(forward(_obs(16, "cuda"))[1], policy.predict_values(_obs(16, "cuda")))
+
+
+@cuda
 def test_outputs_outlive_the_next_replay() -> None:
     policy = _policy("cuda")
     forward = GraphedForward(policy, log=pytest.fail)

@@ -113,10 +113,12 @@ def phase_params(conv: torch.nn.Conv2d) -> tuple[torch.Tensor, torch.Tensor | No
     With gradients they are recomputed, so that autograd reaches ``conv``'s parameters. Without
     (rollout inference) they are kept per convolution and rebuilt only when a parameter changed:
     the key is each parameter's identity, storage and in-place version counter, which optimizer
-    steps and ``load_state_dict`` advance. That saves two small kernels per forward pass.
+    steps and ``load_state_dict`` advance. That saves two small kernels per forward pass. While a
+    CUDA graph is captured they are recomputed too: a replay runs no Python, so a kept kernel would
+    stay the one of the capture while the optimizer moves the weights.
     """
     params = [p for p in (conv.weight, conv.bias) if p is not None]
-    if _records_grad(*params):
+    if _records_grad(*params) or _capturing(conv.weight):
         return phase_weight(conv.weight), None if conv.bias is None else conv.bias.repeat_interleave(4)
     key = tuple(v for p in params for v in (id(p), p.data_ptr(), p._version))
     cached = _PHASE_PARAMS.get(conv)
@@ -126,6 +128,11 @@ def phase_params(conv: torch.nn.Conv2d) -> tuple[torch.Tensor, torch.Tensor | No
             cached = (key, phase_weight(conv.weight), bias)
         _PHASE_PARAMS[conv] = cached
     return cached[1], cached[2]
+
+
+def _capturing(weight: torch.Tensor) -> bool:
+    """Whether a CUDA graph is being captured on the current stream (never on a CPU)."""
+    return weight.is_cuda and torch.cuda.is_current_stream_capturing()
 
 
 def phase_max(grouped: torch.Tensor) -> torch.Tensor:

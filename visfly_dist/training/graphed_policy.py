@@ -11,6 +11,12 @@ the Gaussian's noise comes from the CUDA generator, which advances on every repl
 Only rollouts without gradients use it (``TensorPPO._act``); anything that cannot be captured
 (a CPU policy, an extractor that syncs with the host, a torch without graphs) runs eagerly, and a
 failed capture says why once. ``VISFLY_CUDA_GRAPHS=0`` keeps every forward eager.
+
+A replay runs no Python: anything the forward computes from the parameters and keeps on the Python
+side (the phase form's kernel, :func:`~visfly_dist.training.conv_pool.phase_params`, is rebuilt
+during a capture for that reason) would stay as it was at the capture. After every update,
+:meth:`GraphedForward.verify` replays each graph and compares it with the eager policy on the same
+observations; on a mismatch the graphs are dropped and the rollout goes eager, saying so.
 """
 
 from __future__ import annotations
@@ -20,11 +26,15 @@ import os
 from typing import Any, Callable, Iterator
 
 import torch
+from stable_baselines3.common.policies import ActorCriticPolicy
 
 MAX_GRAPHS = 4
 """Batch sizes captured at most (a rollout has one or two: everyone, or the two groups)."""
 WARMUP_CALLS = 3
 """Eager calls on a side stream before a capture (cuDNN picks its algorithms, caches fill)."""
+VERIFY_TOLERANCE = 1e-2
+"""Relative and absolute tolerance of :meth:`GraphedForward.verify` on values and log-probabilities
+(TF32 convolutions differ in the last bits; a stale layer differs by far more)."""
 
 DISABLE_ENV = "VISFLY_CUDA_GRAPHS"
 
@@ -36,10 +46,10 @@ class GraphedForward:
 
     Args:
         policy: SB3 actor-critic policy (called as ``policy(obs)``).
-        log: receives one line when a capture fails (the reason) and the forward goes eager.
+        log: receives one line when a capture or a check fails (the reason) and the forward goes eager.
     """
 
-    def __init__(self, policy: Callable[[dict[str, torch.Tensor]], Outputs], log: Callable[[str], None] = print) -> None:
+    def __init__(self, policy: ActorCriticPolicy, log: Callable[[str], None] = print) -> None:
         self.policy = policy
         self.log = log
         self._graphs: dict[tuple[Any, ...], tuple[torch.cuda.CUDAGraph, dict[str, torch.Tensor], Outputs]] = {}
@@ -63,6 +73,24 @@ class GraphedForward:
             inputs[k].copy_(v)
         graph.replay()
         return outputs[0].clone(), outputs[1].clone(), outputs[2].clone()
+
+    def verify(self) -> bool:
+        """Replay every graph on its last observations and compare with the eager policy there
+        (values, and the log-probabilities of the replay's actions); on a mismatch drop the graphs
+        and go eager. Call it after parameter updates. Returns whether the graphs (if any) agree."""
+        with torch.no_grad():
+            for graph, inputs, outputs in self._graphs.values():
+                graph.replay()
+                actions, values, log_probs = (o.clone() for o in outputs)
+                eager_values, eager_log_probs, _ = self.policy.evaluate_actions(inputs, actions)
+                if not (torch.allclose(values, eager_values, VERIFY_TOLERANCE, VERIFY_TOLERANCE)
+                        and torch.allclose(log_probs, eager_log_probs, VERIFY_TOLERANCE, VERIFY_TOLERANCE)):
+                    worst = float(torch.max((values - eager_values).abs().max(), (log_probs - eager_log_probs).abs().max()))
+                    self.disabled = f"a replay differed from the eager policy by up to {worst:.3g} after an update"
+                    self.log(f"policy forward: {self.disabled}; the rollout runs it eagerly from now on")
+                    self._graphs.clear()
+                    return False
+        return True
 
     def _capture(self, key: tuple[Any, ...], obs: dict[str, torch.Tensor]) -> Any:
         inputs = {k: v.detach().clone() for k, v in obs.items()}

@@ -424,6 +424,7 @@ class TensorPPO:
                     torch.nn.utils.clip_grad_norm_(policy.parameters(), model.max_grad_norm)
                     policy.optimizer.step()
                 model._n_updates += 1
+            self.forward.verify()  # CUDA graphs still agree with the updated policy (else: eager)
         finally:
             if pool is not None:
                 pool.shutdown(wait=True)
