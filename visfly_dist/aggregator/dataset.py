@@ -20,8 +20,8 @@ from urllib.parse import parse_qsl
 import numpy as np
 
 from visfly_dist.errors import ConfigError, SceneError
+from visfly_dist.scenes.source_syntax import GEN_PREFIX, split_path_source
 
-GEN_PREFIX = "gen:"
 _GLOB_CHARS = set("*?[")
 
 
@@ -64,8 +64,6 @@ def expand_sources(sources: tuple[str, ...], roots: tuple[str, ...]) -> list[str
     Returns concrete sources: generator specs unchanged, paths relative to their root (mesh load
     options such as ``?up=z`` kept on every match).
     """
-    from visfly_dist.scenes.sources import split_path_source
-
     out: list[str] = []
     problems: list[str] = []
     roots_hint = f"scene_roots={list(roots)}" if roots else "no scene_roots were given"
