@@ -64,34 +64,33 @@ def _terms(entries: list[tuple[int, int, int, float]], dtype: np.dtype) -> tuple
         np.array([merged[k] for k in keys], dtype=dtype)
 
 
+def _feature_entries(matrix: np.ndarray, linear: int, square_at: int, squares: int, pair_at: int,
+                     pair_size: int) -> list[tuple[int, int, int, float]]:
+    """``(row, a, b, value)`` of ``matrix @ features`` with features ``[u[1:1+linear]; u[square_at:]**2
+    (squares of them); u[pair_at:] outer u[pair_at:] (pair_size^2)]``, as terms ``value * u[a] * u[b]``."""
+    entries = []
+    for row, col in zip(*np.nonzero(matrix)):
+        if col < linear:
+            a, b = 0, 1 + col
+        elif col < linear + squares:
+            a = b = square_at + col - linear
+        else:
+            i, j = divmod(col - linear - squares, pair_size)
+            a, b = pair_at + i, pair_at + j
+        entries.append((int(row), int(a), int(b), float(matrix[row, col])))
+    return entries
+
+
 def _model_terms(step: CtbrStep) -> tuple[np.ndarray, np.ndarray]:
     """The model ``matrix @ [r; r^2; x outer x] + bias`` over ``u = [1, rotor (4), quat (4), omega (3)]``."""
-    entries = []
-    for row, col in zip(*np.nonzero(step.matrix)):
-        if col < 4:
-            a, b = 0, 1 + col
-        elif col < 8:
-            a = b = 1 + col - 4
-        else:
-            i, j = divmod(col - 8, 7)
-            a, b = 5 + i, 5 + j
-        entries.append((int(row), int(a), int(b), float(step.matrix[row, col])))
+    entries = _feature_entries(step.matrix, linear=4, square_at=1, squares=4, pair_at=5, pair_size=7)
     entries += [(row, 0, 0, float(v)) for row, v in enumerate(step.bias[:, 0])]
     return _terms(entries, step.matrix.dtype)
 
 
 def _loop_terms(step: CtbrStep) -> tuple[np.ndarray, np.ndarray]:
     """The inner loop ``loop @ [omega; r; r^2; omega outer omega]`` over ``u = [1, omega (3), rotor (4)]``."""
-    entries = []
-    for row, col in zip(*np.nonzero(step.loop)):
-        if col < 7:
-            a, b = 0, 1 + col
-        elif col < 11:
-            a = b = 4 + col - 7
-        else:
-            i, j = divmod(col - 11, 3)
-            a, b = 1 + i, 1 + j
-        entries.append((int(row), int(a), int(b), float(step.loop[row, col])))
+    entries = _feature_entries(step.loop, linear=7, square_at=4, squares=4, pair_at=1, pair_size=3)
     return _terms(entries, step.loop.dtype)
 
 
