@@ -10,7 +10,7 @@ from __future__ import annotations
 import ctypes
 import os
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Sequence
 
 
 def load_native(path: Path, version_symbol: str, version: int, disable_env: str, needs: str,
@@ -40,3 +40,11 @@ def load_native(path: Path, version_symbol: str, version: int, disable_env: str,
     except (OSError, AttributeError) as exc:
         return None, f"{path} failed to load: {exc}"
     return lib, "loaded"
+
+
+def declare(lib: ctypes.CDLL, names: Sequence[str], restype: Any, argtypes: list[Any]) -> None:
+    """Give the functions ``names`` of ``lib`` one signature."""
+    for name in names:
+        fn = getattr(lib, name)
+        fn.restype = restype
+        fn.argtypes = argtypes

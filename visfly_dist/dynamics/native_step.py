@@ -20,7 +20,7 @@ import torch
 
 from visfly_dist.dynamics.adjoint import CtbrStep
 from visfly_dist.dynamics.model import ROWS
-from visfly_dist.native import load_native
+from visfly_dist.native import declare, load_native
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_dynamics.so"
 LIBRARY_VERSION = 1
@@ -45,11 +45,8 @@ def load_dynamics() -> tuple[ctypes.CDLL | None, str]:
 
 
 def _declare(lib: ctypes.CDLL) -> None:
-    for name in ("vf_ctbr_step_f32", "vf_ctbr_step_f64"):
-        fn = getattr(lib, name)
-        fn.restype = None
-        fn.argtypes = [ctypes.POINTER(_Params), ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                       ctypes.c_void_p, ctypes.c_int64]
+    declare(lib, ("vf_ctbr_step_f32", "vf_ctbr_step_f64"), None,
+            [ctypes.POINTER(_Params), ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64])
 
 
 def _terms(entries: list[tuple[int, int, int, float]], dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:

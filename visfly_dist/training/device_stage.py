@@ -80,6 +80,5 @@ def unpack(buffer: torch.Tensor, layout: Layout) -> dict[str, torch.Tensor]:
     """The tensors of ``layout`` as views of the uint8 ``buffer``."""
     out = {}
     for name, dtype, shape, offset in layout:
-        nbytes = shape.numel() * torch.empty((), dtype=dtype).element_size()
-        out[name] = buffer[offset:offset + nbytes].view(dtype).view(shape)
+        out[name] = buffer[offset:offset + shape.numel() * dtype.itemsize].view(dtype).view(shape)
     return out

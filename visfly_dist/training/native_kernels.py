@@ -10,7 +10,7 @@ import ctypes
 import functools
 from pathlib import Path
 
-from visfly_dist.native import load_native
+from visfly_dist.native import declare, load_native
 
 LIBRARY_PATH = Path(__file__).parent / "native" / "libvisfly_kernels.so"
 LIBRARY_VERSION = 1
@@ -24,7 +24,5 @@ def load_kernels() -> tuple[ctypes.CDLL | None, str]:
 
 
 def _declare(lib: ctypes.CDLL) -> None:
-    for name in ("vf_phase_max_forward", "vf_phase_max_backward"):
-        fn = getattr(lib, name)
-        fn.restype = None
-        fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64]
+    declare(lib, ("vf_phase_max_forward", "vf_phase_max_backward"), None,
+            [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64])
