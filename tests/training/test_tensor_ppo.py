@@ -34,27 +34,36 @@ def test_running_moments_match_sb3s_running_mean_std() -> None:
 
 def test_normalizer_gives_vecnormalizes_observations_and_rewards() -> None:
     """The same formulas as SB3's VecNormalize (obs: update then scale and clip; rewards: scaled by
-    the spread of discounted returns that restart at episode ends), images untouched."""
+    the spread of discounted returns that restart at episode ends), images untouched. Each vector
+    entry has statistics of its own, whatever its shape, though they are updated together."""
     space = spaces.Dict({"state": spaces.Box(-np.inf, np.inf, (2,), np.float32),
-                         "depth": spaces.Box(0, 20, (1, 4, 4), np.float32)})
+                         "depth": spaces.Box(0, 20, (1, 4, 4), np.float32),
+                         "target": spaces.Box(-np.inf, np.inf, (2, 3), np.float32)})
     norm = Normalizer(space, num_envs=3, gamma=0.9, device=CPU)
     obs_rms, ret_rms, returns = RunningMeanStd(shape=(2,)), RunningMeanStd(shape=()), np.zeros(3)
+    target_rms = RunningMeanStd(shape=(2, 3))
     rng = np.random.default_rng(1)
     for step in range(20):
         state = rng.normal(5.0, 2.0, size=(3, 2)).astype(np.float32)
         depth = rng.uniform(0, 20, size=(3, 1, 4, 4)).astype(np.float32)
         reward = rng.normal(size=3).astype(np.float32)
         done = rng.random(3) < 0.2
-        out = norm.observe({"state": torch.as_tensor(state), "depth": torch.as_tensor(depth)})
+        target = rng.normal(-3.0, 0.5, size=(3, 2, 3)).astype(np.float32)
+        out = norm.observe({"state": torch.as_tensor(state), "depth": torch.as_tensor(depth), "target": torch.as_tensor(target)})
         obs_rms.update(state)
+        target_rms.update(target)
         expected = np.clip((state - obs_rms.mean) / np.sqrt(obs_rms.var + EPSILON), -CLIP_OBS, CLIP_OBS)
         np.testing.assert_allclose(out["state"].numpy(), expected, rtol=1e-5, atol=1e-6)
+        expected = np.clip((target - target_rms.mean) / np.sqrt(target_rms.var + EPSILON), -CLIP_OBS, CLIP_OBS)
+        np.testing.assert_allclose(out["target"].numpy(), expected, rtol=1e-5, atol=1e-6)
+        assert out["target"].shape == (3, 2, 3) and out["target"].dtype == torch.float32
         assert np.array_equal(out["depth"].numpy(), depth)
         scaled = norm.reward(torch.as_tensor(reward), torch.as_tensor(done))
         returns = returns * 0.9 + reward
         ret_rms.update(returns)
         np.testing.assert_allclose(scaled.numpy(), np.clip(reward / np.sqrt(ret_rms.var + EPSILON), -10, 10), rtol=1e-5)
         returns[done] = 0
+    np.testing.assert_allclose(norm.obs_moments["target"].var.numpy(), target_rms.var, rtol=1e-6)
 
 
 def test_saved_statistics_load_as_a_frozen_vecnormalize(tmp_path: Path) -> None:

@@ -36,6 +36,8 @@ A run writes what the SB3 trainer writes (``config.json``, TensorBoard and ``pro
 
 from __future__ import annotations
 
+import itertools
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -75,12 +77,11 @@ class RunningMoments:
         n = batch.shape[0]
         if n == 0:
             return
-        batch_mean, batch_var = batch.mean(dim=0), batch.var(dim=0, unbiased=False)
+        batch_var, batch_mean = torch.var_mean(batch, dim=0, correction=0)
         delta = batch_mean - self.mean
         total = self.count + n
-        self.mean = self.mean + delta * n / total
-        m2 = self.var * self.count + batch_var * n + delta.square() * self.count * n / total
-        self.var = m2 / total
+        self.mean = self.mean + delta * (n / total)
+        self.var = (self.var * self.count + batch_var * n + delta.square() * (self.count * n / total)) / total
         self.count = total
 
     def as_numpy(self) -> Any:
@@ -90,9 +91,14 @@ class RunningMoments:
 
 @dataclass
 class _Moments:
-    mean: np.ndarray
-    var: np.ndarray
+    """Mean, variance (arrays or tensors) and count of one entry's statistics."""
+
+    mean: Any
+    var: Any
     count: float
+
+    def as_numpy(self) -> "_Moments":
+        return _Moments(np.asarray(self.mean.cpu()), np.asarray(self.var.cpu()), self.count)
 
 
 class Normalizer:
@@ -113,18 +119,38 @@ class Normalizer:
         self.keys = vector_keys(space) if enabled else []
         self.enabled = enabled
         self.gamma = gamma
-        self.obs_moments = {k: RunningMoments(tuple(space.spaces[k].shape or ()), device) for k in self.keys}
+        # every vector entry's features in one row: one statistics update and one normalisation a step
+        self._shapes = {k: tuple(space.spaces[k].shape or ()) for k in self.keys}
+        widths = [math.prod(shape) for shape in self._shapes.values()]
+        self._moments = RunningMoments((sum(widths),), device)
+        self._offsets = dict(zip(self.keys, itertools.accumulate([0] + widths)))
         self.ret_moments = RunningMoments((), device)
         self.returns = torch.zeros(num_envs, dtype=torch.float64, device=device)
 
+    @property
+    def obs_moments(self) -> dict[str, "_Moments"]:
+        """Each vector entry's statistics (views of the joint ones), as a ``VecNormalize`` keeps them."""
+        out = {}
+        for k, shape in self._shapes.items():
+            part = slice(self._offsets[k], self._offsets[k] + math.prod(shape))
+            out[k] = _Moments(self._moments.mean[part].reshape(shape), self._moments.var[part].reshape(shape),
+                              float(self._moments.count))
+        return out
+
     def observe(self, obs: dict[str, torch.Tensor], update: bool = True) -> dict[str, torch.Tensor]:
         """``obs`` with its vector entries normalised (after adding them to the statistics)."""
+        if not self.keys:
+            return obs
+        rows = next(iter(obs.values())).shape[0]
+        joint = torch.cat([obs[k].reshape(rows, -1) for k in self.keys], dim=1)
+        m = self._moments
+        if update:
+            m.update(joint)
+        scaled = ((joint - m.mean) / torch.sqrt(m.var + EPSILON)).clamp(-CLIP_OBS, CLIP_OBS)
         out = dict(obs)
-        for k in self.keys:
-            m = self.obs_moments[k]
-            if update:
-                m.update(obs[k])
-            out[k] = ((obs[k] - m.mean) / torch.sqrt(m.var + EPSILON)).clamp(-CLIP_OBS, CLIP_OBS).to(obs[k].dtype)
+        for k, shape in self._shapes.items():
+            start = self._offsets[k]
+            out[k] = scaled[:, start:start + math.prod(shape)].reshape((rows,) + shape).to(obs[k].dtype)
         return out
 
     def reward(self, reward: torch.Tensor, done: torch.Tensor, rows: torch.Tensor | None = None,
