@@ -41,14 +41,13 @@ from gymnasium import spaces
 from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase, Spawn
 from visfly_dist.dynamics import QuadState
-from visfly_dist.dynamics.rotations import quat_to_rotmat
+from visfly_dist.dynamics.rotations import rotmat_rows
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.tasks.common import (
     TARGET_DIM,
     angle_between,
     approach_speed,
     attitude_error,
-    body_from_rotmat,
     metadata_point,
     obstacle_terms,
     progress_speed,
@@ -128,14 +127,19 @@ class _GoalGeometry:
 
     @classmethod
     def of(cls, state: QuadState, goal: torch.Tensor) -> "_GoalGeometry":
+        """The geometry of ``state`` and ``goal``, bit for bit the direct formulas (``R^T d`` as
+        ``bmm`` sums it, the heading as ``(R[:, :, 0] * d).sum(1)``), in component-major ``(3, N)``
+        and ``(9, N)`` blocks: operations on contiguous rows cost a fraction of those on ``(N, 3)``
+        rows with a broadcast column (this runs every step)."""
         offset = goal - state.pos
         distance = torch.linalg.vector_norm(offset, dim=1)
-        direction = offset / distance.clamp(min=1e-6)[:, None]
-        rotmat = quat_to_rotmat(state.quat)
-        return cls(distance, direction, rotmat,
-                   target=torch.cat((body_from_rotmat(rotmat, direction), distance[:, None]), dim=1),
+        direction = offset.t().contiguous() / distance.clamp(min=1e-6)
+        rotmat = rotmat_rows(state.quat.t())
+        body = (rotmat.view(3, 3, -1) * direction[:, None]).sum(dim=0)  # (R^T d)_i = sum_k R_ki d_k, k in order
+        return cls(distance, direction.t(), rotmat.t().view(-1, 3, 3),
+                   target=torch.cat((body.t(), distance[:, None]), dim=1),
                    speed=torch.linalg.vector_norm(state.vel, dim=1), spin=torch.linalg.vector_norm(state.omega, dim=1),
-                   heading=(rotmat[..., 0] * direction).sum(dim=1))
+                   heading=body[0])
 
 
 class NavigationEnv(DroneEnvBase):
