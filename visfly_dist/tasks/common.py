@@ -70,10 +70,25 @@ def obstacle_terms(pos: torch.Tensor, vel: torch.Tensor, nearest: torch.Tensor, 
 def metadata_point(meta: dict[str, Any], key: str, default: Sequence[float]) -> np.ndarray:
     """A 3-vector from scene metadata, or ``default`` when the scene has none."""
     value = meta.get(key, default)
-    point = np.asarray(value, dtype=np.float64).reshape(-1)
+    try:
+        point = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):  # not numbers, or ragged
+        point = np.zeros(0)
     if point.shape != (3,) or not np.all(np.isfinite(point)):
         raise ConfigError(f"scene metadata {key}={value!r} must be 3 finite numbers")
     return point
+
+
+def metadata_points(metas: Sequence[dict[str, Any]], key: str, default: Sequence[float]) -> np.ndarray:
+    """``(k, 3)`` float64: :func:`metadata_point` of each of ``metas``, converted and checked at once."""
+    values = [meta.get(key, default) for meta in metas]
+    try:
+        points = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    except (TypeError, ValueError):  # ragged or not numbers: the one-by-one check names the culprit
+        points = np.zeros((len(values), 0))
+    if points.shape[1] != 3 or not np.isfinite(points).all():
+        return np.array([metadata_point(meta, key, default) for meta in metas]).reshape(-1, 3)
+    return points
 
 
 def vec3_problem(name: str, value: Any, positive: bool = False) -> list[str]:

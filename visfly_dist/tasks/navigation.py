@@ -48,7 +48,7 @@ from visfly_dist.tasks.common import (
     angle_between,
     approach_speed,
     attitude_error,
-    metadata_point,
+    metadata_points,
     obstacle_terms,
     progress_speed,
     reward_problem,
@@ -163,11 +163,11 @@ class NavigationEnv(DroneEnvBase):
         return Spawn.around(self.config.spawn_center, self.config.spawn_half_width, clearance=0.5)
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
-        goals = [metadata_point(self.scene_metadata(int(i)), "goal", self.config.goal) for i in idx.tolist()]
-        goal = self.goal.clone()  # replaced, never written into: the geometry cache keys on it
-        goal[idx] = torch.as_tensor(np.array(goals), dtype=torch.float32, device=self.device).reshape(-1, 3)
-        self.goal = goal
-        self._prev_distance[idx] = self.goal_distance().detach()[idx]
+        metas = [self.scene_metadata(i) for i in idx.tolist()]
+        goals = torch.as_tensor(metadata_points(metas, "goal", self.config.goal), dtype=torch.float32, device=self.device)
+        self.goal = self.goal.index_put((idx,), goals)  # a new tensor, never written into: the geometry cache keys on it
+        # a new tensor too: the old one is a view of the last geometry's distance
+        self._prev_distance = self._prev_distance.index_put((idx,), self.goal_distance().detach().index_select(0, idx))
 
     def goal_distance(self) -> torch.Tensor:
         """``(N,)`` distance from each agent to its goal, m."""
