@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -44,6 +45,19 @@ def target_observation(pos: torch.Tensor, quat: torch.Tensor, target: torch.Tens
     delta = target - pos
     dist = delta.norm(dim=1, keepdim=True)
     return torch.cat((to_body(quat, delta / dist.clamp(min=1e-6)), dist), dim=1)
+
+
+def weighted_sum(terms: Sequence[torch.Tensor], weights: tuple[float, ...]) -> torch.Tensor:
+    """``(N,)`` ``sum_k weights[k] * terms[k]`` of ``(N,)`` terms, as one matrix-vector product (one
+    op, not two per term; the weights' tensor is made once per weights, dtype and device)."""
+    stacked = torch.stack(tuple(terms), dim=1)
+    return stacked @ _constant(weights, stacked.dtype, stacked.device)
+
+
+@functools.lru_cache(maxsize=64)
+def _constant(values: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A tensor of ``values`` made once: never write into it."""
+    return torch.tensor(values, dtype=dtype, device=device)
 
 
 def progress_speed(prev_distance: torch.Tensor, distance: torch.Tensor, dt: float) -> torch.Tensor:

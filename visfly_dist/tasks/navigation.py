@@ -54,6 +54,7 @@ from visfly_dist.tasks.common import (
     reward_problem,
     sensed,
     vec3_problem,
+    weighted_sum,
 )
 
 FORWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, offset=(0.2, 0.0, 0.0))
@@ -202,10 +203,9 @@ class NavigationEnv(DroneEnvBase):
             common = -0.002 * g.speed - 0.002 * g.spin - 0.01 * proximity
             return common + self._visfly_terms(approach, g)
         progress = progress_speed(self._prev_distance, g.distance, cfg.ctrl_dt)
-        terms = torch.stack((g.speed, g.spin, proximity, progress, g.heading, approach, self.success.float(),
-                             self.failure.float()), dim=1)
-        weights = (-0.002, -0.002, -0.01, 0.05, 0.01, -0.05, cfg.success_bonus, -cfg.fail_penalty)
-        return terms @ torch.tensor(weights, dtype=terms.dtype, device=terms.device)  # one op, not fifteen
+        return weighted_sum((g.speed, g.spin, proximity, progress, g.heading, approach, self.success.float(),
+                             self.failure.float()),
+                            (-0.002, -0.002, -0.01, 0.05, 0.01, -0.05, cfg.success_bonus, -cfg.fail_penalty))
 
     def _visfly_terms(self, approach: torch.Tensor, g: _GoalGeometry) -> torch.Tensor:
         """VisFly's progress, heading, attitude, obstacle-ramp and success terms."""
