@@ -43,9 +43,9 @@ import numpy as np
 from visfly_dist.aggregator.assembler import (
     LastGood,
     Observation,
+    empty_observation,
     reply_rows,
     scatter_reply,
-    step_buffers,
 )
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
 from visfly_dist.aggregator.dataset import SceneDataset
@@ -297,8 +297,9 @@ class Aggregator:
         spawn_plan = plan_entries(self.table, spawn_agents, next_episode=True)
         workers = sorted(set(obs_plan) | set(spawn_plan))
         segments, step = self._images, self._step_images(workers, agents, spawn_agents)
-        ticket = StepTicket(agents, spawn_agents, step_buffers(self.cameras, len(agents), None if step is None else step.obs),
-                            step_buffers(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
+        ticket = StepTicket(agents, spawn_agents,
+                            empty_observation(self.cameras, len(agents), None if step is None else step.obs),
+                            empty_observation(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
                             t_start, step)
         none = WorkerEntries()
         requests, parts = [], []

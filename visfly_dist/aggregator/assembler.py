@@ -59,9 +59,11 @@ def blank_observation(cameras: Sequence[CameraSpec], n: int, search_radius: floa
                        np.full(n, search_radius, np.float32), np.ones(n, bool))
 
 
-def empty_observation(cameras: Sequence[CameraSpec], n: int) -> Observation:
-    """Uninitialised buffers for ``n`` rows (every row is written before it is read)."""
-    images = {c.name: np.empty((n, *c.shape), dtype=c.dtype) for c in cameras}
+def empty_observation(cameras: Sequence[CameraSpec], n: int, images: dict[str, np.ndarray] | None = None) -> Observation:
+    """Uninitialised buffers for ``n`` rows (every row is written before it is read): ``images`` if
+    given (a step segment's; no image array is allocated then), else fresh image arrays."""
+    if images is None:
+        images = {c.name: np.empty((n, *c.shape), dtype=c.dtype) for c in cameras}
     return Observation(images, np.empty(n, bool), np.empty(n, bool), np.empty((n, 3), np.float32),
                        np.empty(n, np.float32), np.ones(n, bool))
 
@@ -97,14 +99,6 @@ def copy_rows(out: Observation, rows: np.ndarray, source: Observation, source_ro
     for key in QUERY_FIELDS:
         getattr(out, key)[rows] = getattr(source, key)[source_rows]
     out.lost[rows] = True
-
-
-def step_buffers(cameras: Sequence[CameraSpec], n: int, images: dict[str, np.ndarray] | None) -> Observation:
-    """Buffers for ``n`` rows: the step segment's ``images`` if given, else fresh arrays."""
-    obs = empty_observation(cameras, n)
-    if images is not None:
-        obs.images = images
-    return obs
 
 
 def reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:

@@ -56,13 +56,17 @@ def pose_rows(poses: np.ndarray, agents: np.ndarray, num_agents: int) -> np.ndar
                           "rows [x, y, z, qw, qx, qy, qz]")
     rows = poses[agents] if poses.shape[0] == num_agents and len(agents) != num_agents else poses
     rows = np.asarray(rows, dtype=np.float32)
+    if not len(rows):
+        return rows
     if not np.isfinite(rows).all():
         bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
         raise ConfigError(f"poses of agents {agents[bad][:10].tolist()} are not finite")
-    norms = np.sqrt(np.einsum("ij,ij->i", rows[:, 3:], rows[:, 3:]))
-    if len(norms) and norms.min() < 1e-6:
+    quats = rows[:, 3:]
+    norms = np.sqrt(np.einsum("ij,ij->i", quats, quats))
+    low, high = norms.min(), norms.max()
+    if low < 1e-6:
         raise ConfigError("poses hold a zero quaternion; quaternions are wxyz and must be unit")
-    if len(norms) and np.abs(norms - 1).max() > 1e-4:
+    if high - 1 > 1e-4 or 1 - low > 1e-4:  # the largest |norm - 1| (float32 differences near 1 are exact)
         rows = rows.copy()
         rows[:, 3:] /= norms[:, None]
     return rows

@@ -43,22 +43,24 @@ def plan_entries(table: SlotTable, agents: np.ndarray, next_episode: bool = Fals
     slot_of = table.agent_scene[agents]
     order = np.argsort(slot_of, kind="stable")
     incoming = table.in_incoming[agents] | table.armed[slot_of] if next_episode else table.in_incoming[agents]
-    code = slot_of[order] * 2 + incoming[order]
-    starts = np.flatnonzero(np.r_[True, code[1:] != code[:-1]])
-    counts = np.diff(np.r_[starts, len(code)])
-    out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int]]] = {}
-    for start, count in zip(starts.tolist(), counts.tolist()):
-        slot, new = divmod(int(code[start]), 2)
+    code = (slot_of * 2 + incoming)[order]
+    cuts = (np.flatnonzero(code[1:] != code[:-1]) + 1).tolist()  # plain lists: a few entries cost no NumPy call each
+    starts, codes, firsts = [0, *cuts], code.tolist(), order.tolist()
+    out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int], list[int]]] = {}
+    for start, end in zip(starts, [*cuts, len(codes)]):
+        slot, new = divmod(codes[start], 2)
         s = table.slots[slot]
         worker, key = (s.incoming.move.worker, s.incoming.move.key) if new and s.incoming is not None else (s.worker, s.key)
         if worker is None:
             continue
-        keys, cnts, parts, served = out.setdefault(worker, ([], [], [], []))
+        keys, cnts, parts, served, first = out.setdefault(worker, ([], [], [], [], []))
         keys.append(key)
-        cnts.append(count)
-        parts.append(order[start:start + count])
+        cnts.append(end - start)
+        parts.append(order[start:end])
         served.append(slot)
-    return {w: WorkerEntries(k, c, np.concatenate(p), sl, [int(rows[0]) for rows in p]) for w, (k, c, p, sl) in out.items()}
+        first.append(firsts[start])
+    return {w: WorkerEntries(k, c, np.concatenate(p), sl, f)
+            for w, (k, c, p, sl, f) in out.items()}
 
 
 class StepPlans:
