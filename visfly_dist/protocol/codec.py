@@ -6,7 +6,7 @@ object hooks beyond the array form below, and every decode is validated and boun
 Framing: ``b"VFD1"``, a little-endian ``u32`` header length, the msgpack header, then the raw bytes
 of every array, back to back. An array in the header is the map ``{"__nd__": 1, "dtype": "<f4",
 "shape": [n, 7], "offset": o, "nbytes": b}`` pointing into that tail, so the receiver views images in
-place (``np.frombuffer`` on the payload, no copy) and the sender writes each array's bytes once.
+place (an ndarray over the payload, no copy) and the sender writes each array's bytes once.
 The key ``__nd__`` is reserved: a map holding it must be exactly that marker (the int ``1``, not
 ``true`` or ``1.0``, and those five keys, no other), or the message is refused.
 """
@@ -28,6 +28,7 @@ MAX_ARRAY_ELEMENTS = 256 * 1024 * 1024
 ALLOWED_DTYPES = frozenset(
     np.dtype(t).str for t in ("bool", "uint8", "uint16", "int32", "int64", "float32", "float64")
 )
+_DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
 _ND = "__nd__"
 _ND_KEYS = frozenset({_ND, "dtype", "shape", "offset", "nbytes"})
 MAGIC = b"VFD1"
@@ -38,16 +39,17 @@ class _Tail:
     """The arrays of one message being encoded, in the order they will follow the header."""
 
     def __init__(self) -> None:
-        self.buffers: list[memoryview] = []
+        self.buffers: list[Any] = []  # C-contiguous arrays: ``bytes.join`` takes their bytes as they are
         self.size = 0
 
     def default(self, obj: Any) -> Any:
         if isinstance(obj, np.ndarray):
             arr = obj if obj.flags.c_contiguous else np.ascontiguousarray(obj)  # ascontiguousarray makes 0-d arrays 1-d
-            if arr.dtype.str not in ALLOWED_DTYPES:
+            dtype = arr.dtype.str
+            if dtype not in ALLOWED_DTYPES:
                 raise ProtocolError(f"array dtype {arr.dtype} cannot travel; allowed: {sorted(ALLOWED_DTYPES)}")
-            ref = {_ND: 1, "dtype": arr.dtype.str, "shape": list(arr.shape), "offset": self.size, "nbytes": arr.nbytes}
-            self.buffers.append(arr.reshape(-1).data.cast("B") if arr.size else memoryview(b""))
+            ref = {_ND: 1, "dtype": dtype, "shape": arr.shape, "offset": self.size, "nbytes": arr.nbytes}  # a tuple packs as a list
+            self.buffers.append(arr)
             self.size += arr.nbytes
             return ref
         if isinstance(obj, np.generic):
@@ -69,21 +71,23 @@ def _array_hook(payload: bytes, tail_start: int):
                                 f"'shape', 'offset', 'nbytes'}}; got keys {sorted(map(str, d))} with {_ND!r}: "
                                 f"{d[_ND]!r}")
         dtype, shape, offset, nbytes = d["dtype"], d["shape"], d["offset"], d["nbytes"]
-        if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        dt = _DTYPES.get(dtype) if isinstance(dtype, str) else None
+        if dt is None:
             raise ProtocolError(f"array dtype {dtype!r} not allowed; allowed: {sorted(ALLOWED_DTYPES)}")
-        if not isinstance(shape, list) or len(shape) > 8 or not all(
-                type(s) is int and s >= 0 for s in shape):
+        if not isinstance(shape, list) or len(shape) > 8:
             raise ProtocolError(f"array shape {shape!r} must be a list of at most 8 non-negative ints")
+        for s in shape:  # a loop, not all(...): no generator per array
+            if type(s) is not int or s < 0:
+                raise ProtocolError(f"array shape {shape!r} must be a list of at most 8 non-negative ints")
         if type(offset) is not int or type(nbytes) is not int or offset < 0 or nbytes < 0 \
                 or offset + nbytes > tail_size:
             raise ProtocolError(f"array bytes [{offset!r}, +{nbytes!r}) lie outside the payload's {tail_size}-byte tail")
         count = math.prod(shape)  # Python ints: no overflow, and no NumPy call per array
         if count > MAX_ARRAY_ELEMENTS:
             raise ProtocolError(f"array of {count} elements exceeds the bound {MAX_ARRAY_ELEMENTS}")
-        dt = np.dtype(dtype)
         if count * dt.itemsize != nbytes:
             raise ProtocolError(f"array data is {nbytes} bytes but dtype {dtype} and shape {shape} need {count * dt.itemsize}")
-        return np.frombuffer(payload, dtype=dt, count=count, offset=tail_start + offset).reshape(shape)
+        return np.ndarray(shape, dt, payload, tail_start + offset)  # one call; read-only, as the payload is bytes
 
     return hook
 
