@@ -20,6 +20,7 @@ Layout (little-endian)::
 from __future__ import annotations
 
 import fcntl
+import math
 import re
 import struct
 from dataclasses import dataclass
@@ -65,7 +66,7 @@ def align(n: int) -> int:
 
 def block_bytes(camera: CameraSpec, rows: int) -> int:
     """Bytes of ``rows`` images of ``camera``."""
-    return rows * int(np.prod(camera.shape)) * camera.dtype.itemsize
+    return rows * math.prod(camera.shape) * camera.dtype.itemsize
 
 
 def layout(cameras: Sequence[CameraSpec], rows: int) -> tuple[dict[str, int], int]:
@@ -79,7 +80,7 @@ def layout(cameras: Sequence[CameraSpec], rows: int) -> tuple[dict[str, int], in
 
 def block_view(buffer: Any, offset: int, camera: CameraSpec, rows: int) -> np.ndarray:
     """The ``(rows, C, H, W)`` array of ``camera``'s block at ``offset`` of ``buffer`` (no copy)."""
-    count = rows * int(np.prod(camera.shape))
+    count = rows * math.prod(camera.shape)
     return np.frombuffer(buffer, camera.dtype, count, offset).reshape(rows, *camera.shape)
 
 
