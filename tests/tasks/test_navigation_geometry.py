@@ -43,7 +43,7 @@ def _bits(t: torch.Tensor) -> torch.Tensor:
 @pytest.mark.parametrize("n", [1, 256, 4099])
 def test_geometry_matches_the_direct_formulas_bit_for_bit(dtype: torch.dtype, n: int) -> None:
     state, goal = _state(n, dtype)
-    geometry = _GoalGeometry.of(state, goal)
+    geometry = _GoalGeometry(state, goal)
     for name, expected in _direct(state, goal).items():
         assert torch.equal(_bits(getattr(geometry, name)), _bits(expected)), name
     assert torch.equal(_bits(geometry.target), _bits(target_observation(state.pos, state.quat, goal)))
@@ -53,7 +53,7 @@ def test_geometry_gradients_match_the_direct_formulas() -> None:
     state, goal = _state(9, torch.float64)
     leaves = [state.pos.requires_grad_(), state.quat.requires_grad_(), state.vel.requires_grad_(),
               state.omega.requires_grad_()]
-    geometry, direct = _GoalGeometry.of(state, goal), _direct(state, goal)
+    geometry, direct = _GoalGeometry(state, goal), _direct(state, goal)
     torch.manual_seed(1)
     weights = {name: torch.randn_like(t) for name, t in direct.items()}
     for name, w in weights.items():

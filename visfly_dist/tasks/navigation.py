@@ -31,6 +31,7 @@ metadata's ``goal`` when it has one (generated garages do), else ``config.goal``
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -104,9 +105,14 @@ class NavigationConfig(EnvConfig):
         return out
 
 
-@dataclass(frozen=True)
 class _GoalGeometry:
     """Terms several navigation hooks share, of one state (none depends on what the workers saw).
+
+    Bit for bit the direct formulas (``R^T d`` as ``bmm`` sums it, the heading as
+    ``(R[:, :, 0] * d).sum(1)``), computed in component-major ``(3, N)`` and ``(9, N)`` blocks:
+    operations on contiguous rows cost a fraction of those on ``(N, 3)`` rows with a broadcast
+    column, and this runs every step. What a reset's observation does not need (``speed``, ``spin``,
+    ``direction``, ``rotmat``) is computed on first use.
 
     Attributes:
         distance: ``(N,)`` distance to the goal, m.
@@ -118,29 +124,35 @@ class _GoalGeometry:
         heading: ``(N,)`` cosine of the angle between the body +x axis and the goal direction.
     """
 
-    distance: torch.Tensor
-    direction: torch.Tensor
-    rotmat: torch.Tensor
-    target: torch.Tensor
-    speed: torch.Tensor
-    spin: torch.Tensor
-    heading: torch.Tensor
-
-    @classmethod
-    def of(cls, state: QuadState, goal: torch.Tensor) -> "_GoalGeometry":
-        """The geometry of ``state`` and ``goal``, bit for bit the direct formulas (``R^T d`` as
-        ``bmm`` sums it, the heading as ``(R[:, :, 0] * d).sum(1)``), in component-major ``(3, N)``
-        and ``(9, N)`` blocks: operations on contiguous rows cost a fraction of those on ``(N, 3)``
-        rows with a broadcast column (this runs every step)."""
+    def __init__(self, state: QuadState, goal: torch.Tensor) -> None:
+        self._state = state
         offset = goal - state.pos
-        distance = torch.linalg.vector_norm(offset, dim=1)
-        direction = offset.t().contiguous() / distance.clamp(min=1e-6)
-        rotmat = rotmat_rows(state.quat.t())
-        body = (rotmat.view(3, 3, -1) * direction[:, None]).sum(dim=0)  # (R^T d)_i = sum_k R_ki d_k, k in order
-        return cls(distance, direction.t(), rotmat.t().view(-1, 3, 3),
-                   target=torch.cat((body.t(), distance[:, None]), dim=1),
-                   speed=torch.linalg.vector_norm(state.vel, dim=1), spin=torch.linalg.vector_norm(state.omega, dim=1),
-                   heading=body[0])
+        self.distance = torch.linalg.vector_norm(offset, dim=1)
+        self._direction = offset.t().contiguous() / self.distance.clamp(min=1e-6)
+        self._rows = rotmat_rows(state.quat.t())
+        body = (self._rows.view(3, 3, -1) * self._direction[:, None]).sum(dim=0)  # (R^T d)_i = sum_k R_ki d_k
+        self.target = torch.cat((body.t(), self.distance[:, None]), dim=1)
+        self.heading = body[0]
+
+    @functools.cached_property
+    def speed(self) -> torch.Tensor:
+        return torch.linalg.vector_norm(self._state.vel, dim=1)
+
+    @functools.cached_property
+    def spin(self) -> torch.Tensor:
+        return torch.linalg.vector_norm(self._state.omega, dim=1)
+
+    @property
+    def direction(self) -> torch.Tensor:
+        return self._direction.t()
+
+    @property
+    def rotmat(self) -> torch.Tensor:
+        return self._rows.t().view(-1, 3, 3)
+
+    def complete(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(speed, spin)``, computed now if not yet (a step's hooks use every term)."""
+        return self.speed, self.spin
 
 
 class NavigationEnv(DroneEnvBase):
@@ -183,12 +195,12 @@ class NavigationEnv(DroneEnvBase):
         key = (self.state, self.goal, torch.is_grad_enabled())
         cached = self._geometry
         if cached is None or cached[0] is not key[0] or cached[1] is not key[1] or cached[2] != key[2]:
-            cached = self._geometry = (*key, _GoalGeometry.of(self.state, self.goal))
+            cached = self._geometry = (*key, _GoalGeometry(self.state, self.goal))
         return cached[3]
 
     def precompute(self) -> None:
         super().precompute()
-        self._goal_geometry()
+        self._goal_geometry().complete()
 
     def get_observation(self) -> dict[str, torch.Tensor]:
         return {"state": self.state_vector(self.goal), "target": self._goal_geometry().target, **sensed(self.frame).images}
