@@ -8,9 +8,9 @@ Invariants (Zenoh 1.x behaviour, see docs/ARCHITECTURE.md):
   generation: a scene loaded at an older generation is gone from the worker and must be reloaded.
   Events queue on a channel that the calling thread drains: no callback thread, so no locks, and
   no hang at interpreter exit if a user forgets ``close()``.
-- Every request is a ``get`` with a timeout and ``ConsolidationMode.NONE`` (through a querier
-  declared once per worker and timeout, which costs less per request than a session ``get``), answered
-  through a callback that keeps the first reply's bytes and flags the request done (:class:`Pending`). A
+- Every request is a session ``get`` with a timeout and ``ConsolidationMode.NONE`` (not a declared
+  querier: a router's access control that allows the ``query`` message denies a querier's requests),
+  answered through a callback that keeps the first reply's bytes and flags the request done (:class:`Pending`). A
   request never blocks the caller: :meth:`WorkerPool.send` returns at once, :meth:`WorkerPool.gather`
   waits for a batch (which costs the slowest worker, not the sum), and :meth:`WorkerPool.wait_any`
   waits for whichever of several batches is ready. Zero replies (worker gone, or it dropped the
@@ -168,7 +168,6 @@ class WorkerPool:
         self._spawned = 0
         self._session: zenoh.Session | None = None
         self._subscriber: zenoh.Subscriber | None = None
-        self._queriers: dict[tuple[str, float], zenoh.Querier] = {}  # (worker, timeout) -> its rpc querier, kept until close
         self._log_dir: str | None = None
         self._launch: WorkerLaunchSpec | None = None
         self._replies = threading.Condition()
@@ -222,9 +221,6 @@ class WorkerPool:
         """
         local, self._local = list(self._local.values()), {}
         stop_workers(local, STOP_GRACE_S)
-        for querier in self._queriers.values():
-            querier.undeclare()
-        self._queriers.clear()
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
@@ -440,19 +436,11 @@ class WorkerPool:
         out = []
         for wid, payload in [(wid, encode(message)) for wid, message in requests]:
             pending = Pending(wid, timeout_s, self._replies, len(payload))
-            self._querier(wid, timeout_s).get(
-                payload=payload, handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done, indirect=False))
+            self._session.get(keys.worker_rpc(self.run_id, wid), payload=payload, timeout=timeout_s,
+                              consolidation=zenoh.ConsolidationMode.NONE,
+                              handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done, indirect=False))
             out.append(pending)
         return out
-
-    def _querier(self, worker_id: str, timeout_s: float) -> zenoh.Querier:
-        """The querier of ``worker_id``'s rpc key with ``timeout_s``, declared at its first request."""
-        querier = self._queriers.get((worker_id, timeout_s))
-        if querier is None:
-            assert self._session is not None, "pool is not open"
-            querier = self._queriers[(worker_id, timeout_s)] = self._session.declare_querier(
-                keys.worker_rpc(self.run_id, worker_id), consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
-        return querier
 
     def wait_any(self, batches: Sequence[Sequence[Pending]], timeout_s: float) -> int | None:
         """Index of the first batch whose requests are all done, waiting up to ``timeout_s``."""
