@@ -122,20 +122,18 @@ class Normalizer:
         # every vector entry's features in one row: one statistics update and one normalisation a step
         self._shapes = {k: tuple(space.spaces[k].shape or ()) for k in self.keys}
         widths = [math.prod(shape) for shape in self._shapes.values()]
+        self._columns = {k: slice(start, start + width)  # each entry's columns of the joint row
+                         for k, start, width in zip(self.keys, itertools.accumulate([0] + widths), widths)}
         self._moments = RunningMoments((sum(widths),), device)
-        self._offsets = dict(zip(self.keys, itertools.accumulate([0] + widths)))
         self.ret_moments = RunningMoments((), device)
         self.returns = torch.zeros(num_envs, dtype=torch.float64, device=device)
 
     @property
     def obs_moments(self) -> dict[str, "_Moments"]:
         """Each vector entry's statistics (views of the joint ones), as a ``VecNormalize`` keeps them."""
-        out = {}
-        for k, shape in self._shapes.items():
-            part = slice(self._offsets[k], self._offsets[k] + math.prod(shape))
-            out[k] = _Moments(self._moments.mean[part].reshape(shape), self._moments.var[part].reshape(shape),
-                              float(self._moments.count))
-        return out
+        m = self._moments
+        return {k: _Moments(m.mean[self._columns[k]].reshape(shape), m.var[self._columns[k]].reshape(shape), float(m.count))
+                for k, shape in self._shapes.items()}
 
     def observe(self, obs: dict[str, torch.Tensor], update: bool = True) -> dict[str, torch.Tensor]:
         """``obs`` with its vector entries normalised (after adding them to the statistics)."""
@@ -149,8 +147,7 @@ class Normalizer:
         scaled = ((joint - m.mean) / torch.sqrt(m.var + EPSILON)).clamp(-CLIP_OBS, CLIP_OBS)
         out = dict(obs)
         for k, shape in self._shapes.items():
-            start = self._offsets[k]
-            out[k] = scaled[:, start:start + math.prod(shape)].reshape((rows,) + shape).to(obs[k].dtype)
+            out[k] = scaled[:, self._columns[k]].reshape((rows,) + shape).to(obs[k].dtype)
         return out
 
     def reward(self, reward: torch.Tensor, done: torch.Tensor, rows: torch.Tensor | None = None,
