@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from visfly_dist.client.buffer_pool import BufferPool
-
 from tests.client.counter_task import make_counter
+from visfly_dist.client.buffer_pool import BufferPool
+from visfly_dist.errors import ConfigError
 
 
 @pytest.fixture(scope="module")
@@ -125,3 +125,38 @@ def test_a_held_buffer_is_never_handed_out_again_and_a_released_one_is_reused(ke
     reused = pool._buffers[0].memory
     third = pool.take((3, 4), torch.float32)
     assert np.shares_memory(third.numpy(), reused) and len(pool._buffers) == 1  # no new allocation
+
+
+def test_terminal_ended_gives_the_same_step_with_only_the_ended_rows_and_no_image_copy(env):
+    """``terminal="ended"`` (the tensor PPO's path): the same observation, rewards and flags as a
+    plain step, the terminal rows of exactly the agents that ended, the reset written into the
+    step's own images (no pooled copy), and an observation handed out before left as it was."""
+    twin = make_counter(seed=5)
+    try:
+        for e in (env, twin):
+            e.reset_tensor(seeds=[11, 12, 13, 14])
+            e.step_tensor(hover(e))
+        for ended in ([2], [0, 3], [], [1]):
+            held = env.step_tensor(hover(env), terminal="ended").observation
+            held_depth = held["depth"].clone()
+            twin.step_tensor(hover(twin))
+            for e in (env, twin):
+                e.force_success[ended] = True
+            try:
+                full = twin.step_tensor(hover(twin))
+                rows = env.step_tensor(hover(env), terminal="ended")
+            finally:
+                env.force_success[:] = twin.force_success[:] = False
+            assert torch.equal(rows.terminated | rows.truncated, full.terminated | full.truncated)
+            done = (rows.terminated | rows.truncated).nonzero().squeeze(1)
+            assert set(ended) <= set(done.tolist())  # and those whose time ran out
+            for k in full.observation:
+                assert torch.equal(rows.observation[k], full.observation[k]), k
+                assert torch.equal(rows.info["terminal_observation"][k], full.info["terminal_observation"][k][done]), k
+            assert torch.equal(rows.reward, full.reward)
+            assert not pooled(env, rows.observation["depth"])
+            assert torch.equal(held["depth"], held_depth)
+        with pytest.raises(ConfigError, match="terminal="):
+            env.step_tensor(hover(env), terminal="some")
+    finally:
+        twin.close()

@@ -207,3 +207,22 @@ def test_where_selects_agents_and_detach_cuts_the_graph():
     stepped = quad.step(a, action)
     assert stepped.pos.requires_grad and not stepped.detach().pos.requires_grad
     assert stepped.pose().shape == (3, 7)
+
+
+def test_put_rows_of_a_few_initial_states_matches_where_over_all_agents():
+    """A reset puts the start states of the reset agents only: the same as ``where`` over all N,
+    field for field, and gradients still flow through the rows kept."""
+    quad = _quad("ctbr", n=4)
+    gen = torch.Generator().manual_seed(3)
+    state = quad.initial_state(pos=torch.rand(4, 3, generator=gen, dtype=quad.dtype) + 1.0)
+    action = (torch.rand(4, 4, generator=gen, dtype=quad.dtype) * 2 - 1).requires_grad_()
+    state = quad.step(state, action)
+    starts = torch.rand(4, 3, generator=gen, dtype=quad.dtype) * 5.0
+    idx = torch.tensor([0, 2])
+    mask = torch.zeros(4, dtype=torch.bool).index_fill(0, idx, True)
+    put = state.put_rows(idx, quad.initial_state(starts[idx], agents=2))
+    where = QuadState.where(mask, quad.initial_state(starts), state)
+    for f in dataclasses.fields(QuadState):
+        assert torch.equal(getattr(put, f.name), getattr(where, f.name)), f.name
+    put.pos.sum().backward()
+    assert action.grad is not None and action.grad[[1, 3]].abs().sum() > 0 and not action.grad[[0, 2]].any()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 
@@ -15,7 +16,9 @@ from visfly_dist.training.checkpoints import load_normalization, norm_path
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.evaluation import build_eval_env, evaluate, load_policy
 from visfly_dist.training.ppo import train
-from visfly_dist.training.tensor_ppo import CLIP_OBS, EPSILON, Normalizer, Rollout, RunningMoments
+from visfly_dist.training.tensor_ppo import CLIP_OBS, EPSILON, Normalizer, Rollout, RunningMoments, TensorPPO
+
+from tests.client.counter_task import make_counter
 
 CPU = torch.device("cpu")
 
@@ -185,3 +188,37 @@ def test_a_tensor_ppo_run_counts_episodes_and_writes_checkpoints_eval_loads(tmp_
     finally:
         env.close()
     assert stats.episodes == 3
+
+
+def test_episodes_cut_by_the_time_limit_are_bootstrapped_from_their_own_terminal_view() -> None:
+    """A truncated agent's reward gains ``gamma * V(its terminal observation)`` (SB3's TimeLimit
+    handling), also when the step hands out only the ended agents' terminal rows and an agent that
+    did not end comes before one that did (agent 0 is pushed out of phase by an early success)."""
+    env = make_counter(seed=1)
+    try:
+        model = PPO("MultiInputPolicy", env, n_steps=12, batch_size=16, gamma=0.9, device="cpu", seed=0)
+        trainer = TensorPPO(model, env, normalize=False)
+        trainer.reset()
+        seen, step = [], env.step_tensor
+
+        def recorded(actions, hold=None, terminal="all"):
+            env.force_success[0] = len(seen) == 1
+            result = step(actions, hold, terminal)
+            seen.append(result)
+            return result
+
+        env.step_tensor = recorded
+        trainer.collect()
+        cut_steps = 0
+        for t, (obs, reward, terminated, truncated, info) in enumerate(seen):
+            ended = (terminated | truncated).nonzero().squeeze(1).tolist()
+            expected = reward.clone()
+            for i in truncated.nonzero().squeeze(1).tolist():
+                row = {k: v[ended.index(i)][None] for k, v in info["terminal_observation"].items()}
+                with torch.no_grad():
+                    expected[i] += 0.9 * model.policy.predict_values(row).item()
+            cut_steps += bool(truncated.any() and not truncated[0])
+            torch.testing.assert_close(trainer.rollout.rewards[t], expected.to(trainer.rollout.rewards.dtype))
+        assert cut_steps >= 1  # agents 1-3 were cut while agent 0 flew on
+    finally:
+        env.close()

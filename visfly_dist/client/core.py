@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
 
 import numpy as np
 import torch
@@ -280,7 +280,8 @@ class TensorEnv:
 
     # ----- core step ----------------------------------------------------------------------------
 
-    def step_tensor(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
+    def step_tensor(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None,
+                    terminal: Literal["all", "ended"] = "all") -> StepResult:
         """Advance every agent one control step, keeping torch tensors (and gradients).
 
         Args:
@@ -288,16 +289,23 @@ class TensorEnv:
             hold: ``(N,)`` bool: agents that stay where they are this step (their action is ignored,
                 their reward is 0 and their episode neither advances nor ends). Gymnasium's
                 NEXT_STEP autoreset uses it for the step that returns a reset agent's first view.
+            terminal: what ``info["terminal_observation"]`` holds: every agent's row (``"all"``, as
+                SB3 reads it), or only the rows of the agents whose episode ended this step, in
+                index order (``"ended"``): the reset then writes their new first views into the
+                step's images in place instead of copying every image (a trainer's fast path).
         """
         self._check_open()
         self._check_no_flight("step()")
+        if terminal not in ("all", "ended"):
+            raise ConfigError(f"terminal={terminal!r} must be 'all' or 'ended'")
         if self.frame is None:
             self._first_reset()
         with torch.set_grad_enabled(self.config.requires_grad):
-            return self._step(actions, hold)
+            return self._step(actions, hold, terminal)
 
-    def _step(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None) -> StepResult:
-        return self._finish(self._send(self._actions(actions, self.num_envs), self._everyone, hold))
+    def _step(self, actions: torch.Tensor | np.ndarray, hold: torch.Tensor | None = None,
+              terminal: Literal["all", "ended"] = "all") -> StepResult:
+        return self._finish(self._send(self._actions(actions, self.num_envs), self._everyone, hold), terminal=terminal)
 
     def _actions(self, actions: torch.Tensor | np.ndarray, k: int) -> torch.Tensor:
         actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
@@ -340,12 +348,14 @@ class TensorEnv:
             self.precompute()  # the workers render meanwhile
         return _InFlight(ticket, group, members, held, before, pending, full, spawn_agents, t0, t1 - t0, sim_time)
 
-    def _finish(self, flight: _InFlight, ids: torch.Tensor | None = None) -> StepResult:
+    def _finish(self, flight: _InFlight, ids: torch.Tensor | None = None,
+                terminal: Literal["all", "ended"] = "all") -> StepResult:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
         rows of ``flight.group`` are this step's (the others are zero / False).
 
         ``ids``: the group's agents (``recv``): only their rows are returned, copies, so the frame's
-        images stay the env's own and are merged into in place (:meth:`_merge`)."""
+        images stay the env's own and are merged into in place (:meth:`_merge`).
+        ``terminal``: see :meth:`step_tensor` (a plain step only)."""
         t0 = time.perf_counter()
         self.sim_time = flight.sim_time  # the task hooks see this group's time
         obs, spawn_obs = self.aggregator.collect(flight.ticket)
@@ -401,10 +411,16 @@ class TensorEnv:
                                 "episode_length": self.episode_step}
         done = terminated | truncated
         reset = bool(done.any())
-        # the group's terminal rows are taken before a reset writes the new rows into the frame's images
-        terminal = _rows(observation, ids) if ids is not None and reset else None
-        if reset:
-            observation = self._reset_agents(done, observation, ended=True, own=ids is not None)
+        # the terminal rows handed out are taken before a reset writes the new rows into the frame's images
+        ended_rows = None
+        if ids is not None and reset:
+            ended_rows = _rows(observation, ids)
+        elif terminal == "ended":
+            ended_rows = _rows(observation, done.nonzero().squeeze(1))
+            info["terminal_observation"] = ended_rows
+        if reset:  # the frame of this step is the env's alone until it is returned: written into in place
+            observation = self._reset_agents(done, observation, ended=True, own=ids is not None,
+                                             fresh=ids is None and terminal == "ended")
         self.step_timings = {**self.frame_timings, "physics_s": flight.physics_s,
                              "observe_s": self.frame_timings.get("total_s", t1 - t0),
                              "total_s": time.perf_counter() - flight.started}
@@ -412,7 +428,7 @@ class TensorEnv:
             return StepResult(observation, reward, terminated, truncated, info)
         picked = _rows(observation, ids)
         picked_info: dict[str, Any] = _rows({k: v for k, v in info.items() if k != "terminal_observation"}, ids)
-        picked_info["terminal_observation"] = dict(picked) if terminal is None else terminal  # no reset: the same rows
+        picked_info["terminal_observation"] = dict(picked) if ended_rows is None else ended_rows  # no reset: the same rows
         return StepResult(picked, reward.index_select(0, ids), terminated.index_select(0, ids),
                           truncated.index_select(0, ids), picked_info)
 
@@ -541,11 +557,12 @@ class TensorEnv:
         return obs
 
     def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None,
-                      ended: bool = False, own: bool = False) -> dict[str, torch.Tensor]:
+                      ended: bool = False, own: bool = False, fresh: bool = False) -> dict[str, torch.Tensor]:
         """Reset the agents in ``mask`` to their drawn next start; return ``observation`` with their
         rows replaced by the first view of their new episode (rendered ahead, or now if it is not).
         ``ended``: their episodes ended (they count towards scene swaps; a reset asked for does not).
-        ``own``: neither ``observation`` nor the result is handed out whole (:meth:`_merge`)."""
+        ``own``: neither ``observation`` nor the result is handed out whole (:meth:`_merge`).
+        ``fresh``: ``observation``'s images are this step's, not handed out yet (:meth:`_merge`)."""
         idx = mask.nonzero().squeeze(1)
         idx_np = idx.cpu().numpy()
         chosen = np.zeros(self.num_envs, dtype=bool)
@@ -553,8 +570,8 @@ class TensorEnv:
         self._redraw_for_new_scene(chosen)  # a swap armed since their next start was drawn
         if len(self.aggregator.note_resets(idx_np, count=ended)):  # some start this episode in a swapped-in scene
             self.bounds = self._agent_bounds()
-        fresh = self.quad.initial_state(self._next_pos)
-        self.state = QuadState.where(mask, fresh, self.state)
+        starts = self.quad.initial_state(self._next_pos.index_select(0, idx), agents=len(idx_np))
+        self.state = self.state.put_rows(idx, starts)
         self.episode_step = torch.where(mask, 0, self.episode_step)
         self.episode_return = torch.where(mask, 0.0, self.episode_return)
         self.reset_agents_hook(idx)
@@ -567,7 +584,7 @@ class TensorEnv:
         if observation is None or before is None:
             self.frame = rows
         else:
-            self.frame = self._merge(idx, rows, own)
+            self.frame = self._merge(idx, rows, own, fresh)
         after = self.frame
         self._draw_next_starts(idx)
         fresh_obs = self._observation()
@@ -581,7 +598,7 @@ class TensorEnv:
         return {k: v if k in passed else torch.where(mask.reshape((-1,) + (1,) * (v.dim() - 1)), v, observation[k])
                 for k, v in fresh_obs.items()}
 
-    def _merge(self, index: torch.Tensor, rows: SensorFrame, own: bool) -> SensorFrame:
+    def _merge(self, index: torch.Tensor, rows: SensorFrame, own: bool, fresh: bool = False) -> SensorFrame:
         """``self.frame`` with its rows ``index`` from ``rows``.
 
         ``own``: the send/recv path, which hands out copies of the group's rows only, never the
@@ -589,10 +606,15 @@ class TensorEnv:
         that path writes into them in place (no copy of every agent's images per group step). Any
         other merge copies, so a frame handed out (a plain step's or a reset's observation) is never
         written over. Task hooks must not keep the frame's images across steps (copy what they keep).
+
+        ``fresh``: the frame's images were collected this step and nothing outside the env refers to
+        them yet (a step whose terminal observation holds only the ended rows, copies): they are
+        written into in place too; the result is handed out, so it is not the env's own afterwards.
         """
         frame = self.frame
         assert frame is not None, "a merge follows the first observation"
-        merged = frame.scatter(index, rows, self._image_buffers, in_place=own and frame is self._own_frame)
+        in_place = fresh or (own and frame is self._own_frame)
+        merged = frame.scatter(index, rows, self._image_buffers, in_place=in_place)
         self._own_frame = merged if own else None
         return merged
 

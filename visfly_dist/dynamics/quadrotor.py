@@ -123,11 +123,12 @@ class Quadrotor:
 
     def initial_state(self, pos: torch.Tensor | None = None, vel: torch.Tensor | None = None,
                       quat: torch.Tensor | None = None, omega: torch.Tensor | None = None,
-                      rotor: torch.Tensor | None = None) -> QuadState:
-        """A state of N agents; components left None are: at the origin, at rest, level, with
+                      rotor: torch.Tensor | None = None, agents: int | None = None) -> QuadState:
+        """A state of N agents (``agents`` if given: the new rows of a few, see
+        :meth:`QuadState.put_rows`); components left None are: at the origin, at rest, level, with
         rotors at hover speed. The action queue holds the hover action (PS: the action that holds
         each agent's position)."""
-        n = self.num_agents
+        n = self.num_agents if agents is None else agents
         kw: dict[str, Any] = {"dtype": self.dtype, "device": self.device}
         pos = self._component("pos", pos, torch.zeros(n, 3, **kw))
         vel = self._component("vel", vel, torch.zeros(n, 3, **kw))

@@ -44,6 +44,12 @@ class QuadState:
         """The same state cut from the autograd graph (truncated BPTT)."""
         return QuadState(**{f.name: getattr(self, f.name).detach() for f in fields(self)})
 
+    def put_rows(self, index: torch.Tensor, rows: QuadState) -> QuadState:
+        """This state with agents ``index`` (``(k,)`` long) taken from ``rows`` (a state of ``k``
+        agents, in that order): what :meth:`where` gives, made from the ``k`` new rows only."""
+        return QuadState(**{f.name: getattr(self, f.name).index_copy(0, index, getattr(rows, f.name))
+                            for f in fields(self)})
+
     @staticmethod
     def where(mask: torch.Tensor, a: QuadState, b: QuadState) -> QuadState:
         """Agent-wise select: ``a``'s agent ``i`` where ``mask[i]``, else ``b``'s (masked resets).

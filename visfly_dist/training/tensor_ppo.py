@@ -284,8 +284,7 @@ class TensorPPO:
         success.on_training_start(locals(), globals())
         self._on_episode = success.record_episode
         if self._obs is None:
-            first = {k: torch.as_tensor(v) for k, v in self.env.reset().items()}
-            self._obs = self.norm.observe(self._to_device(first))
+            self.reset()
         t0 = time.perf_counter()
         try:
             while model.num_timesteps < total_timesteps:
@@ -306,6 +305,11 @@ class TensorPPO:
             self.phase_seconds["loop_s"] += time.perf_counter() - t0
             success.on_training_end()
 
+    def reset(self) -> None:
+        """Reset the env and take in its first observation (``learn`` does this before its first rollout)."""
+        first = {k: torch.as_tensor(v) for k, v in self.env.reset().items()}
+        self._obs = self.norm.observe(self._to_device(first))
+
     def collect(self) -> None:
         """One rollout of ``n_steps`` per agent into :attr:`rollout` (GAE included)."""
         self.policy.set_training_mode(False)
@@ -313,7 +317,7 @@ class TensorPPO:
             if len(self.groups) == 1:
                 for t in range(self.n_steps):
                     actions = self._act(0, t)
-                    self._take(0, t, self.env.step_tensor(actions))
+                    self._take(0, t, self.env.step_tensor(actions, terminal="ended"))
             else:
                 self._collect_overlapped()
             last_values = self.policy.predict_values(self._observation()).flatten()
@@ -368,7 +372,9 @@ class TensorPPO:
         if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
             cut_rows = truncated.nonzero().squeeze(1)  # on the env's device
             which = cut_rows.to(self.device)
-            terminal = {k: v[cut_rows.to(v.device)] for k, v in info["terminal_observation"].items()}
+            # a plain step's terminal observation holds the ended rows only, a group's every row
+            cut = truncated[ended] if everyone else cut_rows
+            terminal = {k: v[cut.to(v.device)] for k, v in info["terminal_observation"].items()}
             terminal = self.norm.observe(self._to_device(terminal), update=False)
             reward = reward.clone()
             reward[which] += self.model.gamma * self.policy.predict_values(terminal).flatten()
@@ -384,7 +390,7 @@ class TensorPPO:
             current = self._observation()
             for k, v in fresh.items():
                 current[k][rows] = v
-        if any_ended:
+        if any_ended and self._on_episode is not None:  # a collect outside learn() records no episodes
             self._record_episodes(ended, truncated, info)
 
     def _record_episodes(self, done: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> None:
@@ -395,7 +401,7 @@ class TensorPPO:
         lengths = info["episode_length"][rows].cpu().numpy()
         cut = truncated[rows].cpu().numpy()
         for j in range(len(rows)):
-            assert self._on_episode is not None
+            assert self._on_episode is not None  # _take records only with a callback
             self._on_episode({"is_success": bool(flags["success"][j]), "collision": bool(flags["collision"][j]),
                               "out_of_bounds": bool(flags["out_of_bounds"][j]), "lost": bool(flags["lost"][j]),
                               "swapped": bool(flags["swapped"][j]), "TimeLimit.truncated": bool(cut[j]),
