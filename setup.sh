@@ -44,6 +44,9 @@ fi
 if ! make -s -C visfly_dist/dynamics/native >/dev/null 2>&1; then  # the CTBR step without gradients
   echo "setup.sh: native dynamics step not built (needs g++ and make); steps without gradients run in NumPy (slower)" >&2
 fi
+if ! make -s -C visfly_dist/tasks/native >/dev/null 2>&1; then  # navigation's per-step terms without gradients
+  echo "setup.sh: native task terms not built (needs g++ and make); navigation's hooks run as torch operations (slower)" >&2
+fi
 
 if [ "${VISFLY_SETUP_ONLY:-0}" != "1" ]; then
   exec "$PY" -m visfly_dist.cli train navigation "$@"

@@ -57,6 +57,13 @@ from visfly_dist.tasks.common import (
     vec3_problem,
     weighted_sum,
 )
+from visfly_dist.tasks.native_terms import goal_geometry, ours_reward
+
+
+def _without_grad(tensors: tuple[torch.Tensor, ...]) -> bool:
+    """No gradient would flow through terms of ``tensors``: grad mode off, or none requires grad."""
+    return not torch.is_grad_enabled() or not any(t.requires_grad for t in tensors)
+
 
 FORWARD_DEPTH = CameraSpec(name="depth", kind="depth", width=64, height=64, hfov_deg=90.0, offset=(0.2, 0.0, 0.0))
 
@@ -112,7 +119,9 @@ class _GoalGeometry:
     ``(R[:, :, 0] * d).sum(1)``), computed in component-major ``(3, N)`` and ``(9, N)`` blocks:
     operations on contiguous rows cost a fraction of those on ``(N, 3)`` rows with a broadcast
     column, and this runs every step. What a reset's observation does not need (``speed``, ``spin``,
-    ``direction``, ``rotmat``) is computed on first use.
+    ``direction``, ``rotmat``) is computed on first use. Without gradients, float32 on the CPU, the
+    native library computes every term but ``direction`` and ``rotmat`` in one call (same values up
+    to float32 rounding, see :mod:`~visfly_dist.tasks.native_terms`).
 
     Attributes:
         distance: ``(N,)`` distance to the goal, m.
@@ -125,11 +134,13 @@ class _GoalGeometry:
     """
 
     def __init__(self, state: QuadState, goal: torch.Tensor) -> None:
-        self._state = state
-        offset = goal - state.pos
-        self.distance = torch.linalg.vector_norm(offset, dim=1)
-        self._direction = offset.t().contiguous() / self.distance.clamp(min=1e-6)
-        self._rows = rotmat_rows(state.quat.t())
+        self._state, self._goal = state, goal
+        inputs = (state.pos, state.vel, state.quat, state.omega, goal)
+        native = goal_geometry(*inputs) if _without_grad(inputs) else None
+        if native is not None:  # every term in one call; direction and rotmat computed here on first use
+            self.distance, self.target, self.heading, self.speed, self.spin = native
+            return
+        self.distance = torch.linalg.vector_norm(self._offset, dim=1)
         body = (self._rows.view(3, 3, -1) * self._direction[:, None]).sum(dim=0)  # (R^T d)_i = sum_k R_ki d_k
         self.target = torch.cat((body.t(), self.distance[:, None]), dim=1)
         self.heading = body[0]
@@ -141,6 +152,21 @@ class _GoalGeometry:
     @functools.cached_property
     def spin(self) -> torch.Tensor:
         return torch.linalg.vector_norm(self._state.omega, dim=1)
+
+    @functools.cached_property
+    def _offset(self) -> torch.Tensor:
+        """``(N, 3)`` goal minus position."""
+        return self._goal - self._state.pos
+
+    @functools.cached_property
+    def _direction(self) -> torch.Tensor:
+        """``(3, N)`` the unit vectors to the goal, component-major."""
+        return self._offset.t().contiguous() / self.distance.clamp(min=1e-6)
+
+    @functools.cached_property
+    def _rows(self) -> torch.Tensor:
+        """``(9, N)`` the rotation matrices' entries, component-major."""
+        return rotmat_rows(self._state.quat.t())
 
     @property
     def direction(self) -> torch.Tensor:
@@ -210,14 +236,30 @@ class NavigationEnv(DroneEnvBase):
 
     def get_reward(self) -> torch.Tensor:
         s, cfg, g, frame = self.state, self.config, self._goal_geometry(), sensed(self.frame)
+        native = self._native_ours_reward(g) if cfg.reward == "ours" else None
+        if native is not None:
+            return native
         proximity, approach = obstacle_terms(s.pos, s.vel, frame.nearest, frame.distance, cfg.search_radius)
         if cfg.reward == "visfly":
             common = -0.002 * g.speed - 0.002 * g.spin - 0.01 * proximity
             return common + self._visfly_terms(approach, g)
         progress = progress_speed(self._prev_distance, g.distance, cfg.ctrl_dt)
         return weighted_sum((g.speed, g.spin, proximity, progress, g.heading, approach, self.success.float(),
-                             self.failure.float()),
-                            (-0.002, -0.002, -0.01, 0.05, 0.01, -0.05, cfg.success_bonus, -cfg.fail_penalty))
+                             self.failure.float()), self._ours_weights())
+
+    def _ours_weights(self) -> tuple[float, ...]:
+        """The weights of ``ours``' terms (speed, spin, proximity, progress, heading, approach, success, failure)."""
+        return -0.002, -0.002, -0.01, 0.05, 0.01, -0.05, self.config.success_bonus, -self.config.fail_penalty
+
+    def _native_ours_reward(self, g: _GoalGeometry) -> torch.Tensor | None:
+        """The ``ours`` reward in one native call, or ``None`` where it does not apply (gradients, no library)."""
+        s, frame, cfg = self.state, sensed(self.frame), self.config
+        inputs = (s.pos, s.vel, frame.nearest, frame.distance, self._prev_distance, g.distance, g.heading, g.speed,
+                  g.spin)
+        if not _without_grad(inputs):
+            return None
+        return ours_reward(*inputs, self.success, self.failure, search_radius=cfg.search_radius, near=1.0,
+                           dt=cfg.ctrl_dt, weights=self._ours_weights())
 
     def _visfly_terms(self, approach: torch.Tensor, g: _GoalGeometry) -> torch.Tensor:
         """VisFly's progress, heading, attitude, obstacle-ramp and success terms."""
