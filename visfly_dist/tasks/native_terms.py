@@ -4,8 +4,8 @@ Built by ``setup.sh`` (``make -C visfly_dist/tasks/native``; needs g++). It comp
 geometry and the ``ours`` reward of :mod:`visfly_dist.tasks.navigation` for steps without gradients,
 in plain float32 loops instead of dozens of small torch operations a step (whose dispatch is the
 cost at hundreds of agents). Without the library, or with ``VISFLY_NATIVE_TASKS=0``, or for inputs
-it does not take (another dtype or device, gradients), the task runs its torch code: same results
-up to float32 rounding.
+it does not take (another dtype or device, gradients), the task runs its torch code: the same
+geometry bit for bit, the same reward up to the float32 rounding of its weighted sum.
 """
 
 from __future__ import annotations

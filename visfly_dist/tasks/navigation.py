@@ -120,8 +120,8 @@ class _GoalGeometry:
     operations on contiguous rows cost a fraction of those on ``(N, 3)`` rows with a broadcast
     column, and this runs every step. What a reset's observation does not need (``speed``, ``spin``,
     ``direction``, ``rotmat``) is computed on first use. Without gradients, float32 on the CPU, the
-    native library computes every term but ``direction`` and ``rotmat`` in one call (same values up
-    to float32 rounding, see :mod:`~visfly_dist.tasks.native_terms`).
+    native library computes every term but ``direction`` and ``rotmat`` in one call, with the same
+    operations in the same order (the same bits; see :mod:`~visfly_dist.tasks.native_terms`).
 
     Attributes:
         distance: ``(N,)`` distance to the goal, m.
