@@ -170,7 +170,26 @@ def test_tracking_success_needs_the_target_held_to_the_end(envs):
     env.held = torch.full((2,), env.hold_steps - 1, dtype=torch.long)
     _, _, done, infos = env.step(hover(env))
     assert done.all() and [i["is_success"] for i in infos] == [True, False]
-    assert infos[1]["TimeLimit.truncated"]
+    # success or not, the time limit cut the episode: a trainer bootstraps both alike
+    assert infos[0]["TimeLimit.truncated"] and infos[1]["TimeLimit.truncated"]
+
+
+@pytest.mark.parametrize("task", ["hover", "tracking"])
+def test_a_success_judged_at_the_time_limit_is_a_truncation_not_a_termination(envs, task):
+    """Hover and tracking could go on: their successful end is cut by the time limit like a failed
+    one (truncated, not terminated), so no trainer values succeeding below failing at the end."""
+    env = envs(task)
+    env.reset()
+    env.episode_step = torch.full((2,), env.config.max_episode_steps - 1, dtype=torch.long)
+    env.held = torch.full((2,), env.hold_steps, dtype=torch.long)
+    time = torch.full((2,), float(env.config.max_episode_steps) * env.config.ctrl_dt)
+    goal = env.target_at(env.center, time)[0].numpy() if task == "tracking" else env.target[0].numpy()
+    place(env, [goal, goal + np.array([0.0, 0.0, 0.05])])
+    if task == "tracking":
+        env.episode_step = torch.full((2,), env.config.max_episode_steps - 1, dtype=torch.long)
+    result = env.step_tensor(hover(env))
+    assert result.info["success"].tolist() == [True, True]
+    assert result.truncated.tolist() == [True, True] and not result.terminated.any()
 
 
 def test_visfly_reward_variant_has_no_failure_penalty(envs):

@@ -9,8 +9,9 @@ tasks subclass; trainers that want no numpy (``training/tensor_ppo.py``) call th
 
 One step: actions -> ``Quadrotor.step`` -> poses -> ``Aggregator.observe`` -> images to torch (+
 noise) -> ``get_success``, ``get_failure``, then ``get_reward`` (which may read ``self.success`` and
-``self.failure``), then ``get_observation``. ``terminated = success | failure``; ``truncated`` =
-time limit, agents whose scene was swapped, and lost agents held for longer than ``lost_hold_s``.
+``self.failure``), then ``get_observation``. ``terminated = success | failure`` (``failure`` alone for
+a task whose success is judged at its time limit); ``truncated`` = time limit, agents whose scene was
+swapped, and lost agents held for longer than ``lost_hold_s``.
 An agent whose worker failed (no fresh observation: ``lost``) is *held*: its step is undone (state
 back to where it was, no reward, its episode neither advances nor ends, ``info["held"]``), as a
 NEXT_STEP autoreset holds an agent, and it resumes with a fresh observation once its scene is served
@@ -129,6 +130,11 @@ class TensorEnv:
 
     config_class: type[EnvConfig] = EnvConfig
     render_mode = None
+    success_ends_episode = True
+    """``False`` for a task whose success is judged when its time runs out (hover, tracking): such an
+    episode is cut by the time limit (truncated), success or not, as the task could go on. Were a
+    success to end it instead, a trainer would bootstrap a failed episode from the value of going on
+    and not a successful one, and the agent would learn to fail the hold at the very end."""
 
     def __init__(self, config: EnvConfig | None = None) -> None:
         config = self.config_class() if config is None else config
@@ -194,7 +200,8 @@ class TensorEnv:
         raise NotImplementedError
 
     def get_success(self) -> torch.Tensor:
-        """``(N,)`` bool: the agent reached its goal this step (terminates the episode)."""
+        """``(N,)`` bool: the agent reached its goal this step (terminates the episode unless
+        :attr:`success_ends_episode` is ``False``)."""
         raise NotImplementedError
 
     def get_failure(self) -> torch.Tensor:
@@ -393,7 +400,7 @@ class TensorEnv:
         observation = self._observation()
         self.update_task_state()
 
-        terminated = self.success | self.failure
+        terminated = self.success | self.failure if self.success_ends_episode else self.failure
         truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
         terminated, truncated = self.expand_resets(terminated, truncated if full else truncated & live)
         swapped = self._take_swapped(flight.members)

@@ -15,10 +15,11 @@ Reward per step (``d`` distance to the target, m), ``reward="ours"`` (default):
 ``reward="visfly"`` (VisFly's HoverEnv): ``0.1 - (0.1 / 9) d - 1e-5 |q - q_level| - 0.002 |v| -
 0.002 |omega|``, no terminal terms.
 
-Termination: success at the time limit when the drone stayed within ``success_radius`` (0.3 m) of
-the target for the last ``hold_fraction`` (half) of the episode; failure on collision, or out of
-bounds (the scene's box, or farther than ``max_distance`` (2 m) from the target). Truncation: the time limit
-(``max_episode_steps``, 100 steps of 0.03 s) without success.
+Success: at the time limit, when the drone stayed within ``success_radius`` (0.3 m) of the target
+for the last ``hold_fraction`` (half) of the episode. Termination: failure on collision, or out of
+bounds (the scene's box, or farther than ``max_distance`` (2 m) from the target). Truncation: the
+time limit (``max_episode_steps``, 100 steps of 0.03 s), with success or without: hovering could go on,
+so a trainer values a successful end as it values a failed one (``success_ends_episode = False``).
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ class HoverEnv(DroneEnvBase):
     """Hold a drone at its scene's goal (or ``config.target``)."""
 
     config_class = HoverConfig
+    success_ends_episode = False  # judged at the time limit: see the module docstring
     config: HoverConfig
 
     def __init__(self, config: HoverConfig | None = None) -> None:

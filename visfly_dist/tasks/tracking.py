@@ -20,10 +20,11 @@ linear term pulls from afar; the Gaussian (weight 1, ``near_sigma`` 0.4 m) is st
 and 0.6 m, so it pulls hard across the success radius, where the linear term alone is flat. ``reward="visfly"`` (VisFly's TrackEnv):
 ``0.1 - (0.1 / 9) d - 1e-5 |q - q_level| - 0.002 |v| - 0.002 |omega|``.
 
-Termination: success at the time limit when the drone stayed within ``success_distance`` (0.5 m)
-of the target for the last ``hold_fraction`` (40 %) of the episode; failure on collision, or out
-of bounds (the scene's box, or farther than ``max_distance`` (3 m) from the target: it is lost).
-Truncation: the time limit (256 steps of 0.03 s) without success.
+Success: at the time limit, when the drone stayed within ``success_distance`` (0.5 m) of the target
+for the last ``hold_fraction`` (40 %) of the episode. Termination: failure on collision, or out of
+bounds (the scene's box, or farther than ``max_distance`` (3 m) from the target: it is lost).
+Truncation: the time limit (256 steps of 0.03 s), with success or without: tracking could go on, so
+a trainer values a successful end as it values a failed one (``success_ends_episode = False``).
 """  # noqa: E501
 
 from __future__ import annotations
@@ -108,6 +109,7 @@ class TrackingEnv(DroneEnvBase):
     """Stay close to a target moving on a circle."""
 
     config_class = TrackingConfig
+    success_ends_episode = False  # judged at the time limit: see the module docstring
     config: TrackingConfig
 
     def __init__(self, config: TrackingConfig | None = None) -> None:
