@@ -413,18 +413,27 @@ class Aggregator:
         self._require_started()
         agents = self._agents(agents)
         spec = spawn_spec(distribution, a, b, clearance)
-        slots = sorted({int(s) for s in self.agent_scene[agents]})  # each agent's next episode starts in its slot's
-        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]  # next scene (an armed swap's)
-        if missing:
-            self._fetch_spawn_pools_now(missing, spec)
-        draws = self._streams.draw(agents)
         out = np.empty((len(agents), 3), dtype=np.float64)
+        if not len(agents):
+            return out
+        # the agents grouped by slot once: each group's rows, in increasing order, are a run of ``order``
         slot_of = self.agent_scene[agents]
-        for slot in slots:
-            key = self._pool_key(slot, spec)
-            mine = np.flatnonzero(slot_of == slot)
-            out[mine] = self._spawns.draw(key, draws[mine])
-            self._keep_fresh(key)
+        order = np.argsort(slot_of, kind="stable")
+        slot_sorted = slot_of[order]
+        cuts = (np.flatnonzero(slot_sorted[1:] != slot_sorted[:-1]) + 1).tolist()
+        starts, ends, slots = [0, *cuts], [*cuts, len(agents)], slot_sorted[[0, *cuts]].tolist()
+        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]  # each agent's next episode
+        if missing:  # starts in its slot's next scene (an armed swap's)
+            self._fetch_spawn_pools_now(missing, spec)
+        draws = self._streams.draw(agents)[order]
+        picked = []
+        for slot, start, end in zip(slots, starts, ends):
+            key = self._pool_key(slot, spec)  # here, not before: a refresh waited for may arm a swap
+            positions, half_drawn = self._spawns.draw(key, draws[start:end])
+            picked.append(positions)
+            if half_drawn:
+                self._keep_fresh(key)
+        out[order] = picked[0] if len(picked) == 1 else np.concatenate(picked)
         return out
 
     def reseed(self, seeds: int | Sequence[int], agents: np.ndarray | None = None) -> None:
@@ -435,7 +444,8 @@ class Aggregator:
 
     def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
         """The pool that next episodes in ``slot`` start from: its armed swap's scene, else its own."""
-        return PoolKey(slot, self._next_scene(slot)[2], spec)
+        s = self.table.slots[slot]
+        return PoolKey(slot, s.source if s.incoming is None else s.incoming.move.source, spec)
 
     def _next_scene(self, slot: int) -> tuple[str | None, str, str]:
         """``(worker, key, source)`` of the scene next episodes in ``slot`` start in."""
@@ -445,7 +455,8 @@ class Aggregator:
         return s.worker, s.key, s.source
 
     def _keep_fresh(self, key: PoolKey) -> None:
-        """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn."""
+        """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn
+        (called once half of it was drawn: before, neither is due)."""
         in_flight = [j.pending for j in self._background if isinstance(j, SpawnJob) and j.key == key]
         worker, scene_key, _ = self._next_scene(key.slot)
         if self._spawns.wants_refresh(key, bool(in_flight)) and worker is not None:

@@ -12,9 +12,10 @@ keeps the pools and says what is due.
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -38,9 +39,9 @@ class SpawnSpec(NamedTuple):
     clearance: float
 
 
-@dataclass(frozen=True)
-class PoolKey:
-    """One pool: a slot, the scene source it holds, and the distribution."""
+class PoolKey(NamedTuple):
+    """One pool: a slot, the scene source it holds, and the distribution (a tuple: hashed in C, as
+    dictionary keys are on every draw)."""
 
     slot: int
     source: str
@@ -58,6 +59,34 @@ class SpawnJob:
 
 def spawn_spec(distribution: str, a: Sequence[float], b: Sequence[float], clearance: float) -> SpawnSpec:
     """The checked :class:`SpawnSpec` of a spawn request; ConfigError naming every problem."""
+    plain = _plain_spec(distribution, a, b, clearance)
+    return plain if plain is not None else _checked_spec(distribution, a, b, clearance)
+
+
+_REAL = (float, int, np.floating, np.integer)
+
+
+def _plain_spec(distribution: str, a: Any, b: Any, clearance: float) -> SpawnSpec | None:
+    """:func:`spawn_spec` of a valid request whose corners are tuples or lists of 3 plain numbers
+    (what tasks pass on every reset), without NumPy; None for anything else, which
+    :func:`_checked_spec` then takes (``float`` of such a number is its float64 value exactly)."""
+    if distribution not in ("uniform", "normal") or type(a) not in (tuple, list) or type(b) not in (tuple, list) \
+            or len(a) != 3 or len(b) != 3:
+        return None
+    for v in (*a, *b):
+        if not isinstance(v, _REAL) or isinstance(v, bool):
+            return None
+    va = (float(a[0]), float(a[1]), float(a[2]))
+    vb = (float(b[0]), float(b[1]), float(b[2]))
+    c = float(clearance)
+    if not (all(map(math.isfinite, va)) and all(map(math.isfinite, vb)) and 0 <= c <= 100):
+        return None
+    if distribution == "uniform" and any(x > y for x, y in zip(va, vb)) or distribution == "normal" and min(vb) < 0:
+        return None
+    return SpawnSpec(distribution, va, vb, c)
+
+
+def _checked_spec(distribution: str, a: Sequence[float], b: Sequence[float], clearance: float) -> SpawnSpec:
     problems = []
     if distribution not in ("uniform", "normal"):
         problems.append(f"distribution={distribution!r} must be 'uniform' or 'normal'")
@@ -107,6 +136,7 @@ class AgentStreams:
 
     def __init__(self, num_agents: int) -> None:
         self._seed = np.zeros(num_agents, dtype=np.uint64)
+        self._mixed = _splitmix64(self._seed)  # the first half of counter_draws, fixed per seed
         self._count = np.zeros(num_agents, dtype=np.uint64)
 
     def reseed(self, agents: np.ndarray, seeds: int | Sequence[int]) -> None:
@@ -118,13 +148,18 @@ class AgentStreams:
         if len(values) != len(agents):
             raise ConfigError(f"reseed: {len(values)} seeds for {len(agents)} agents")
         self._seed[agents] = values.astype(np.uint64)
+        self._mixed[agents] = _splitmix64(self._seed[agents])
         self._count[agents] = 0
 
     def draw(self, agents: np.ndarray) -> np.ndarray:
         """``(k,)`` uint64: the next draw of each of ``agents`` (an agent listed twice draws twice)."""
-        draws = counter_draws(self._seed[agents], self._count[agents] + _occurrence(agents))
-        np.add.at(self._count, agents, np.uint64(1))
-        return draws
+        if len(agents) < 2 or (agents[1:] > agents[:-1]).all():  # each agent once, as resets ask
+            counters = self._count[agents]
+            self._count[agents] = counters + np.uint64(1)
+        else:
+            counters = self._count[agents] + _occurrence(agents)
+            np.add.at(self._count, agents, np.uint64(1))
+        return _splitmix64(self._mixed[agents] ^ counters)
 
 
 class SpawnPools:
@@ -174,11 +209,13 @@ class SpawnPools:
         self._positions[job.key] = positions
         self._draws[job.key] = 0
 
-    def draw(self, key: PoolKey, draws: np.ndarray) -> np.ndarray:
-        """``(k, 3)`` positions of the pool picked by ``draws`` (uint64, :meth:`AgentStreams.draw`)."""
+    def draw(self, key: PoolKey, draws: np.ndarray) -> tuple[np.ndarray, bool]:
+        """``(k, 3)`` positions of the pool picked by ``draws`` (uint64, :meth:`AgentStreams.draw`),
+        and whether half the pool or more is drawn now (else neither :meth:`wants_refresh` nor
+        :meth:`used_up` can hold: nothing to ask)."""
         positions = self._positions[key]
-        self._draws[key] = self._draws.get(key, 0) + len(draws)
-        return positions[draws % len(positions)]
+        drawn = self._draws[key] = self._draws[key] + len(draws)
+        return positions[draws % len(positions)], drawn >= len(positions) // 2
 
     def wants_refresh(self, key: PoolKey, refreshing: bool) -> bool:
         """Half the pool was drawn and no refresh is on its way or waiting."""
