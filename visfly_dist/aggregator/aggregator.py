@@ -292,23 +292,24 @@ class Aggregator:
         rows = pose_rows(poses, agents, self.num_agents)
         spawn_agents = self._agents(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
         spawn_rows = pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents, self.num_agents)
-        self._maintain()
+        gens = self._maintain()
         obs_plan = self._plans.get(agents)
         spawn_plan = plan_entries(self.table, spawn_agents, next_episode=True)
         workers = sorted(set(obs_plan) | set(spawn_plan))
-        segments, step = self._images, self._step_images(workers, agents, spawn_agents)
+        generation = [gens[w] if w in gens else self._pool.generation(w) for w in workers]
+        segments, step = self._images, self._step_images(list(zip(workers, generation)), agents, spawn_agents)
         ticket = StepTicket(agents, spawn_agents,
                             empty_observation(self.cameras, len(agents), None if step is None else step.obs),
                             empty_observation(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
                             t_start, step)
         none = WorkerEntries()
         requests, parts = [], []
-        for wid in workers:
+        for wid, gen in zip(workers, generation):
             obs, spawn = obs_plan.get(wid, none), spawn_plan.get(wid, none)
             poses_w = np.concatenate([rows[obs.rows], spawn_rows[spawn.rows]])
             times = np.full(len(obs.keys) + len(spawn.keys), float(sim_time)) if sim_time else None
             target = None if step is None or segments is None else segments.target(
-                step, (wid, self._pool.generation(wid)), obs.starts, spawn.starts)
+                step, (wid, gen), obs.starts, spawn.starts)
             message = step_message(obs.keys + spawn.keys, np.array(obs.counts + spawn.counts, np.int32), poses_w,
                                    search_radius=self.search_radius, times=times, image_segment=target)
             requests.append((wid, message))
@@ -320,12 +321,14 @@ class Aggregator:
         ticket.timings.extra["plan_s"] = t0 - t_start
         return ticket
 
-    def _step_images(self, workers: Sequence[str], agents: np.ndarray, spawn_agents: np.ndarray) -> StepImages | None:
-        """The image segment of a step, when its rows can be laid out in observation order (agents
-        in increasing order, as the env always asks): then each entry's rows are one run."""
+    def _step_images(self, workers: list[tuple[str, int]], agents: np.ndarray,
+                     spawn_agents: np.ndarray) -> StepImages | None:
+        """The image segment of a step to ``workers`` (``(worker, generation)`` pairs), when its rows
+        can be laid out in observation order (agents in increasing order, as the env always asks):
+        then each entry's rows are one run."""
         if self._images is None or not workers or not (increasing(agents) and increasing(spawn_agents)):
             return None
-        return self._images.offer([(w, self._pool.generation(w)) for w in workers], len(agents), len(spawn_agents))
+        return self._images.offer(workers, len(agents), len(spawn_agents))
 
     def ready(self, ticket: StepTicket) -> bool:
         """Whether every reply of ``ticket`` is in (``collect`` will not wait)."""
@@ -372,11 +375,13 @@ class Aggregator:
                               reply.worker_id, in_place)
         if segments is not None and step is not None:
             self._release_images(ticket, segments, step, failed)
-        stale = np.flatnonzero(ticket.obs.lost)
-        if len(stale):
+        if ticket.obs.lost.any():
+            stale = np.flatnonzero(ticket.obs.lost)
             self._last.fill(ticket.obs, stale, ticket.agents[stale])
-        fresh = np.flatnonzero(~ticket.obs.lost)
-        self._last.remember(ticket.obs, fresh, ticket.agents[fresh])
+            fresh = np.flatnonzero(~ticket.obs.lost)
+            self._last.remember(ticket.obs, fresh, ticket.agents[fresh])
+        else:
+            self._last.remember(ticket.obs, np.arange(len(ticket.agents)), ticket.agents)
         assemble_s = time.perf_counter() - t0
         self._moves.note_collect()
         self._apply_background()
@@ -501,7 +506,7 @@ class Aggregator:
         if every == 0 or len(agents) == 0 or not count:
             return moved
         counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
-        gens = {w: self._pool.generation(w) for w in self._pool.live_workers()}
+        gens = self._pool.generations(self._pool.live_workers())
         self._background.extend(self._moves.start_swaps(counts, every, gens))
         return moved
 
@@ -529,16 +534,17 @@ class Aggregator:
             self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
         self._moves.orphan(reply.worker_id, reason)
 
-    def _maintain(self) -> None:
-        """Orphan slots of dead or restarted workers; start loads for orphans; rebalance; wait out outages."""
+    def _maintain(self) -> dict[str, int]:
+        """Orphan slots of dead or restarted workers; start loads for orphans; rebalance; wait out
+        outages. Returns the generation of each live worker."""
         self._pool.respawn_exited()
         self._pool.recheck_banned()
         live = self._pool.live_workers()
-        gens = {w: self._pool.generation(w) for w in live}
+        gens = self._pool.generations(live)
         self._background.extend(self._moves.reconcile(gens))
         settled = (self.table.revision, tuple(gens.items()))
         if settled == self._settled and not (self._background or self._moves.stale or self._moves.switching):
-            return  # nothing changed since a pass that found nothing to do: it would find nothing again
+            return gens  # nothing changed since a pass that found nothing to do: it would find nothing again
         for s in self.table.slots:
             if s.worker is not None and (s.worker not in gens or gens[s.worker] != s.generation):
                 why = "liveliness token gone" if s.worker not in gens else "restarted"
@@ -546,7 +552,7 @@ class Aggregator:
         self._send_unloads(self._moves.take_stale(live))
         if not live:
             live = self._wait_out_outage()
-            gens = {w: self._pool.generation(w) for w in live}
+            gens = self._pool.generations(live)
         placeable = self._moves.placeable(live)
         plan = self.table.plan_placement(placeable, gens)
         if not plan and not self.table.orphans():
@@ -556,6 +562,7 @@ class Aggregator:
         self._background.extend(self._moves.send_loads(plan))
         busy = plan or self._background or self._moves.switching or len(placeable) < len(live)
         self._settled = None if busy else (self.table.revision, tuple(gens.items()))
+        return gens
 
     def _wait_out_outage(self) -> list[str]:
         """No worker is reachable: wait for one (up to ``outage_limit_s``), or raise NoWorkersError."""
@@ -580,7 +587,7 @@ class Aggregator:
             if not placeable:  # every worker is full for now: wait for the first backoff to end
                 time.sleep(max(0.0, self._moves.full_until(live) - time.monotonic()))
                 continue
-            gens = {w: self._pool.generation(w) for w in live}
+            gens = self._pool.generations(live)
             self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens)))
             jobs = [j for j in self._background if isinstance(j, LoadJob)]
             self._pool.gather([j.pending for j in jobs])

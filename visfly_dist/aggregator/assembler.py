@@ -124,6 +124,7 @@ class LastGood:
 
     def __init__(self, cameras: Sequence[CameraSpec], num_agents: int, search_radius: float) -> None:
         self.num_agents = num_agents
+        self._every = np.arange(num_agents)
         self.obs = blank_observation(cameras, num_agents, search_radius)
         self._private = True  # False while obs is an observation handed out by collect()
         self._pending: list[tuple[Observation, np.ndarray, np.ndarray]] = []  # (obs, rows, agents), oldest first
@@ -135,7 +136,7 @@ class LastGood:
 
     def remember(self, obs: Observation, rows: np.ndarray, agents: np.ndarray) -> None:
         """Keep ``obs``' fresh ``rows`` as the last good data of ``agents``."""
-        if len(agents) == self.num_agents and np.array_equal(agents, np.arange(self.num_agents)):
+        if len(agents) == self.num_agents and (agents == self._every).all():
             self.obs, self._private, self._pending = obs, False, []
             return
         if not len(rows):

@@ -44,7 +44,7 @@ import os
 import secrets
 import weakref
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -78,6 +78,15 @@ def _room(rows: int) -> int:
     return 1 << max(rows - 1, 0).bit_length()
 
 
+class RowLayout(NamedTuple):
+    """One camera's image rows in a segment's block: its name, bytes per row, dtype and image shape."""
+
+    name: str
+    row_bytes: int
+    dtype: np.dtype
+    shape: tuple[int, int, int]
+
+
 @dataclass(eq=False)
 class Segment:
     """One sealed memfd, mapped here: per camera a block of ``obs_rows`` then ``spawn_rows`` images."""
@@ -97,7 +106,7 @@ class Segment:
         """Whether anything made from the last lease (an observation, a torch tensor over it) is alive."""
         return self.lease is not None and self.lease() is not None
 
-    def lend(self, cameras: Sequence[CameraSpec], obs_rows: int,
+    def lend(self, cameras: Sequence[RowLayout], obs_rows: int,
              spawn_rows: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Writable ``(rows, C, H, W)`` views of each camera's observation and spawn rows, all of a new lease."""
         lease = np.frombuffer(self.mm, np.uint8)  # its base is no ndarray: views of it keep it as theirs
@@ -105,10 +114,9 @@ class Segment:
 
         def views(first: int, rows: int) -> dict[str, np.ndarray]:
             out = {}
-            for cam in cameras:
-                row_bytes = block_bytes(cam, 1)
-                start = self.blocks[cam.name] + first * row_bytes
-                out[cam.name] = lease[start:start + rows * row_bytes].view(cam.dtype).reshape(rows, *cam.shape)
+            for name, row_bytes, dtype, shape in cameras:
+                start = self.blocks[name] + first * row_bytes
+                out[name] = lease[start:start + rows * row_bytes].view(dtype).reshape(rows, *shape)
             return out
 
         return views(0, obs_rows), views(self.obs_rows, spawn_rows)
@@ -152,6 +160,7 @@ class ImageSegments:
     def __init__(self, run_id: str, cameras: Sequence[CameraSpec]) -> None:
         self.run_id = run_id
         self.cameras = tuple(cameras)
+        self._layouts = [RowLayout(c.name, block_bytes(c, 1), c.dtype, c.shape) for c in self.cameras]  # once, not per step
         self.pid = os.getpid()  # whose /proc/<pid>/fd the workers open the segments through
         self._segments: list[Segment] = []
         self._refused: set[tuple[str, int]] = set()
@@ -178,7 +187,7 @@ class ImageSegments:
                 return None
             self._segments.append(seg)
         seg.busy = True
-        return StepImages(seg, *seg.lend(self.cameras, obs_rows, spawn_rows))
+        return StepImages(seg, *seg.lend(self._layouts, obs_rows, spawn_rows))
 
     def target(self, step: StepImages, worker: tuple[str, int], obs_starts: Sequence[int],
                spawn_starts: Sequence[int]) -> SegmentTarget | None:

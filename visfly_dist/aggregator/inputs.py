@@ -34,6 +34,11 @@ def agent_index(agents: np.ndarray | Sequence[int] | None, num_agents: int) -> n
     """``agents`` (indices, a ``(num_agents,)`` bool mask, or ``None`` for all) as int64 indices."""
     if agents is None:
         return np.arange(num_agents, dtype=np.int64)
+    if type(agents) is np.ndarray and agents.dtype == np.int64 and agents.ndim == 1:  # what the env passes
+        idx = agents.copy()
+        if idx.size and (idx.min() < 0 or idx.max() >= num_agents):
+            raise ConfigError(f"agent indices must be in [0, {num_agents}), got {idx.min()}..{idx.max()}")
+        return idx
     idx = np.asarray(agents)
     if idx.dtype == bool:
         if idx.shape != (num_agents,):

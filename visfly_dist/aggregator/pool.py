@@ -174,6 +174,7 @@ class WorkerPool:
         self._user: str | None = None
         self._lost = LostRequests(config.lost_request_limit)
         self._recheck: dict[str, tuple[float, float, Pending | None]] = {}  # banned -> (next probe, wait, probe in flight)
+        self._rpc_keys: dict[str, str] = {}  # worker -> its checked rpc key expression
 
     # ----- lifecycle -------------------------------------------------------------------------
 
@@ -284,6 +285,11 @@ class WorkerPool:
         """How many times this worker's token appeared (a new value means it restarted)."""
         self._poll_liveliness()
         return self._generation.get(worker_id, 0)
+
+    def generations(self, workers: Sequence[str]) -> dict[str, int]:
+        """:meth:`generation` of each of ``workers`` (the liveliness events polled once)."""
+        self._poll_liveliness()
+        return {w: self._generation.get(w, 0) for w in workers}
 
     def wait_for(self, count: int, timeout_s: float, required: Sequence[str] = (),
                  remote_may_join: bool = False) -> list[str]:
@@ -436,7 +442,10 @@ class WorkerPool:
         out = []
         for wid, payload in [(wid, encode(message)) for wid, message in requests]:
             pending = Pending(wid, timeout_s, self._replies, len(payload))
-            self._session.get(keys.worker_rpc(self.run_id, wid), payload=payload, timeout=timeout_s,
+            key = self._rpc_keys.get(wid)
+            if key is None:
+                key = self._rpc_keys[wid] = keys.worker_rpc(self.run_id, wid)
+            self._session.get(key, payload=payload, timeout=timeout_s,
                               consolidation=zenoh.ConsolidationMode.NONE,
                               handler=zenoh.handlers.Callback(pending.on_reply, pending.on_done, indirect=False))
             out.append(pending)
