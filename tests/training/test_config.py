@@ -60,7 +60,8 @@ def test_landing_trains_with_bptt_by_default_and_with_ppo_defaults_under_algo_pp
     hover = TrainConfig(task="hover", algo="bptt").resolved()
     assert (hover.algo, hover.horizon, hover.lr, hover.num_envs) == ("bptt", 32, 3e-4, 16)
     assert TrainConfig(task="navigation").resolved().algo == "ppo"          # the tensor PPO, measured there
-    assert TrainConfig(task="hover").resolved().algo == "sb3-ppo"           # not yet measured with it
+    assert TrainConfig(task="hover").resolved().algo == "ppo"               # measured there too
+    assert TrainConfig(task="racing").resolved().algo == "sb3-ppo"          # not yet measured with it
     assert TrainConfig(task="landing", algo="shac").resolved().num_envs == 8  # the gradient row applies to shac too
 
 
