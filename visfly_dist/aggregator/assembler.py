@@ -119,7 +119,10 @@ class LastGood:
     ones (each step of a group replaces the group's previous one, whose rows it all covers): they
     are written into a private copy, in the order they came, only when a lost agent needs it or
     when more come; never into arrays already handed out to a caller. Observations handed out are
-    read only, to the aggregator and its callers alike, so keeping them is keeping their data.
+    read only, to the aggregator and its callers alike, so keeping them is keeping their data; the
+    one writer is the env of a step taken with ``terminal="ended"``, which writes the first views of
+    the agents it resets into their rows before it hands the step out: those rows then hold each
+    such agent's newest view, which is what it should get if its worker is lost next.
     """
 
     def __init__(self, cameras: Sequence[CameraSpec], num_agents: int, search_radius: float) -> None:
