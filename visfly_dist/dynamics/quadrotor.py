@@ -91,6 +91,7 @@ class Quadrotor:
         self._integrate = rk4_step if config.integrator == "rk4" else euler_step
         self._adjoint: CtbrStep | None = None
         self._native: NativeCtbrStep | None = None
+        self._rest_rows: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # see _rest
         # The adjoint runs on NumPy views of CPU tensors. Past about 3,000 agents its dense matmuls
         # cost more than autograd's bookkeeping saves (measured with grad: 0.75x autograd at 4,096,
         # 1.1x at 3,000, 2-3x at 1,000, 5x at 100); compiled, autograd's own graph is used. The
@@ -130,18 +131,31 @@ class Quadrotor:
         each agent's position)."""
         n = self.num_agents if agents is None else agents
         kw: dict[str, Any] = {"dtype": self.dtype, "device": self.device}
+        level, hover_speed, hover_action = self._rest()
         pos = self._component("pos", pos, torch.zeros(n, 3, **kw))
         vel = self._component("vel", vel, torch.zeros(n, 3, **kw))
-        quat = self._component("quat", quat, torch.tensor([[1.0, 0.0, 0.0, 0.0]], **kw).expand(n, 4))
+        given_quat = quat is not None
+        quat = self._component("quat", quat, level.expand(n, 4).contiguous())
         omega = self._component("omega", omega, torch.zeros(n, 3, **kw))
-        rotor = self._component("rotor", rotor, self.hover_rotor_speed().expand(n, 4))
-        hold = self.hover_action().expand(n, 4)
+        rotor = self._component("rotor", rotor, hover_speed.expand(n, 4))
+        hold = hover_action.expand(n, 4)
         if isinstance(self.controller, PositionYaw):
             offset = (pos.detach() - self.controller.origin.T) / 10.0
             hold = torch.cat((offset.clamp(-1, 1), hold[:, 3:]), dim=1)
         queue = hold[:, None].expand(n, self.config.delay_steps, 4).contiguous()
-        return QuadState(pos=pos, vel=vel, quat=quat / quat.norm(dim=1, keepdim=True), omega=omega,
-                         rotor=rotor, ground_contact=pos[:, 2] <= 0, action_queue=queue)
+        return QuadState(pos=pos, vel=vel, quat=quat / quat.norm(dim=1, keepdim=True) if given_quat else quat,
+                         omega=omega, rotor=rotor, ground_contact=pos[:, 2] <= 0, action_queue=queue)
+
+    def _rest(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(1, 4)`` the level quaternion, ``()`` the hover rotor speed and ``(4,)`` the hover action:
+        made once, unless an airframe parameter requires grad (then each start is in its graph)."""
+        if self._rest_rows is not None:
+            return self._rest_rows
+        rest = (torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=self.dtype, device=self.device),
+                self.hover_rotor_speed(), self.hover_action())
+        if not _any_requires_grad(self.model, self.controller):
+            self._rest_rows = rest
+        return rest
 
     def _component(self, name: str, value: torch.Tensor | None, default: torch.Tensor) -> torch.Tensor:
         if value is None:
