@@ -36,6 +36,7 @@ A run writes what the SB3 trainer writes (``config.json``, TensorBoard and ``pro
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import math
 import time
@@ -55,6 +56,7 @@ from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import save_normalization
 from visfly_dist.training.device_stage import DeviceStage
 from visfly_dist.training.graphed_policy import GraphedForward
+from visfly_dist.training.native_kernels import addresses, load_kernels
 from visfly_dist.training.parallel_update import UpdateSettings, mean_stats, minibatch_gradients
 from visfly_dist.training.threads import UpdateThreadChooser
 
@@ -111,9 +113,15 @@ class Normalizer:
         gamma: discount of the returns whose spread scales the rewards.
         device: where the statistics live.
         enabled: ``False`` passes observations and rewards through unchanged.
+        native: on a CPU, a step's float32 observations and (all agents', none held) rewards are
+            normalised in one call of the native kernels each (:mod:`~visfly_dist.training.native_kernels`,
+            where built and not switched off) instead of about twenty torch operations: the same
+            statistics up to the rounding of the batch moments, the same scaled values. ``False``:
+            torch's operations always.
     """
 
-    def __init__(self, space: spaces.Dict, num_envs: int, gamma: float, device: torch.device, enabled: bool = True) -> None:
+    def __init__(self, space: spaces.Dict, num_envs: int, gamma: float, device: torch.device, enabled: bool = True,
+                 native: bool = True) -> None:
         from visfly_dist.training.run import vector_keys
 
         self.keys = vector_keys(space) if enabled else []
@@ -127,6 +135,8 @@ class Normalizer:
         self._moments = RunningMoments((sum(widths),), device)
         self.ret_moments = RunningMoments((), device)
         self.returns = torch.zeros(num_envs, dtype=torch.float64, device=device)
+        self._widths = (ctypes.c_int64 * len(widths))(*widths)
+        self._kernels = load_kernels()[0] if native and torch.device(device).type == "cpu" else None
 
     @property
     def obs_moments(self) -> dict[str, "_Moments"]:
@@ -139,6 +149,10 @@ class Normalizer:
         """``obs`` with its vector entries normalised (after adding them to the statistics)."""
         if not self.keys:
             return obs
+        if (lib := self._kernels) is not None:
+            fast = self._observe_native(lib, obs, update)
+            if fast is not None:
+                return fast
         rows = next(iter(obs.values())).shape[0]
         joint = torch.cat([obs[k].reshape(rows, -1) for k in self.keys], dim=1)
         m = self._moments
@@ -150,12 +164,36 @@ class Normalizer:
             out[k] = scaled[:, self._columns[k]].reshape((rows,) + shape).to(obs[k].dtype)
         return out
 
+    def _observe_native(self, lib: ctypes.CDLL, obs: dict[str, torch.Tensor],
+                        update: bool) -> dict[str, torch.Tensor] | None:
+        """:meth:`observe` in one kernel call, or ``None`` where it does not take the entries
+        (not float32 CPU tensors of this normaliser's shapes, or no rows)."""
+        inputs = [obs[k] for k in self.keys]
+        rows = inputs[0].shape[0]
+        if rows == 0 or any(x.dtype != torch.float32 or not x.is_cpu or x.shape != (rows,) + shape
+                            for x, shape in zip(inputs, self._shapes.values())):
+            return None
+        inputs = [x if x.is_contiguous() else x.contiguous() for x in inputs]
+        outputs = [torch.empty(x.shape, dtype=torch.float32) for x in inputs]
+        m = self._moments
+        mean, var = (torch.empty_like(m.mean), torch.empty_like(m.var)) if update else (None, None)
+        lib.vf_normalize_obs_f32(
+            addresses(inputs), addresses(outputs), self._widths, len(inputs), rows, m.mean.data_ptr(), m.var.data_ptr(),
+            None if mean is None else mean.data_ptr(), None if var is None else var.data_ptr(), m.count, EPSILON, CLIP_OBS)
+        if mean is not None and var is not None:
+            m.mean, m.var, m.count = mean, var, m.count + rows
+        return {**obs, **dict(zip(self.keys, outputs))}
+
     def reward(self, reward: torch.Tensor, done: torch.Tensor, rows: torch.Tensor | None = None,
                held: torch.Tensor | None = None) -> torch.Tensor:
         """Scaled rewards of agents ``rows`` (default all); their discounted returns restart where
         ``done`` and stay as they are where ``held`` (a step that did not happen)."""
         if not self.enabled:
             return reward
+        if (lib := self._kernels) is not None and rows is None and held is None:
+            fast = self._reward_native(lib, reward, done)
+            if fast is not None:
+                return fast
         before = self.returns if rows is None else self.returns[rows]
         returns = before * self.gamma + reward.to(torch.float64)
         if held is None:
@@ -169,6 +207,25 @@ class Normalizer:
             self.returns = returns
         else:
             self.returns[rows] = returns
+        return scaled
+
+    def _reward_native(self, lib: ctypes.CDLL, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor | None:
+        """:meth:`reward` of every agent, none held, in one kernel call, or ``None`` where it does not
+        take them (not float32 rewards and bool ends on the CPU, one per agent)."""
+        n = reward.shape[0]
+        if (n == 0 or reward.dtype != torch.float32 or done.dtype != torch.bool or not reward.is_cpu or not done.is_cpu
+                or reward.shape != self.returns.shape or done.shape != self.returns.shape):
+            return None
+        reward, done = reward.contiguous(), done.contiguous()
+        m = self.ret_moments
+        returns, mean, var = torch.empty_like(self.returns), torch.empty_like(m.mean), torch.empty_like(m.var)
+        scaled = torch.empty(n, dtype=torch.float32)
+        lib.vf_normalize_reward_f32(
+            reward.data_ptr(), done.data_ptr(), self.returns.data_ptr(), returns.data_ptr(), n, self.gamma,
+            m.mean.data_ptr(), m.var.data_ptr(), mean.data_ptr(), var.data_ptr(), m.count, EPSILON, CLIP_REWARD,
+            scaled.data_ptr())
+        m.mean, m.var, m.count = mean, var, m.count + n
+        self.returns = returns
         return scaled
 
     def save(self, path: Path) -> None:

@@ -8,7 +8,7 @@
 
 extern "C" {
 
-int vf_kernels_version() { return 1; }
+int vf_kernels_version() { return 2; }
 
 void vf_phase_max_forward(const float* y, float* out, std::uint8_t* index, std::int64_t groups) {
     for (std::int64_t g = 0; g < groups; ++g) {
