@@ -416,6 +416,34 @@ def test_a_held_observation_is_never_written_over_and_a_released_segment_is_reus
     assert _shm_files(RUN) == []
 
 
+def test_a_caller_that_says_it_holds_n_observations_cycles_through_the_same_segments():
+    """A trainer keeping a rollout of ``n`` observations (``hold(n)``): once it lets go of its oldest
+    each step, the segment comes back and no new one is made, even as the spawn rows of a step vary
+    (a segment is made with room for the most any step asked for); without ``hold`` the held ones are
+    retired and a new segment is made every step."""
+    for held, new_each_step in ((16, False), (0, True)):
+        segments = ImageSegments(RUN, CAMS)
+        if held:
+            segments.hold(held)
+        kept: list[np.ndarray] = []
+        made = set()
+        for value in range(3 * 16):
+            step = segments.offer([("w", 1)], 4, (0, 3, 9, 1, 5)[value % 5])  # a few next starts each step
+            step.obs["depth"][:] = value
+            segments.release(step)
+            made.add(step.segment.name)
+            kept.append(step.obs["depth"])
+            del step
+            if len(kept) > 16:  # the rollout replaces its oldest observation
+                kept.pop(0)
+        assert all((depth == value).all() for value, depth in zip(range(32, 48), kept))  # none written over
+        assert (len(made) > 40) == new_each_step and (len(made) <= 16 + 4 or new_each_step)
+        del kept
+        gc.collect()
+        segments.close()
+    assert _shm_files(RUN) == []
+
+
 def test_only_images_taken_in_place_count_as_written_over():
     """A worker that wrote into a segment before and whose request now got no reply did not write
     over anything (it failed already: reporting it would drop a worker the lost-request policy keeps)."""

@@ -95,6 +95,29 @@ def test_saved_statistics_load_as_a_frozen_vecnormalize(tmp_path: Path) -> None:
     assert venv.training is False and venv.norm_reward
 
 
+def test_kept_images_gather_the_rows_a_copied_rollout_gives() -> None:
+    """A rollout that keeps each step's images as handed out (no copy) gathers a minibatch's rows
+    exactly as a rollout that copied them in; vector entries are copied either way."""
+    space = spaces.Dict({"state": spaces.Box(-np.inf, np.inf, (3,), np.float32),
+                         "depth": spaces.Box(0, 20, (1, 4, 5), np.float32)})
+    steps, envs = 6, 5
+    kept, copied = Rollout(space, steps, envs, CPU, kept_images=True), Rollout(space, steps, envs, CPU)
+    assert set(kept.images) == {"depth"} and not copied.images
+    gen = torch.Generator().manual_seed(0)
+    for rollout in range(2):  # the second rollout replaces the first one's images
+        handed_out = []
+        for t in range(steps):
+            obs = {"state": torch.randn(envs, 3, generator=gen), "depth": torch.rand(envs, 1, 4, 5, generator=gen)}
+            kept.store_observation(t, slice(None), obs)
+            copied.store_observation(t, slice(None), obs)
+            handed_out.append(obs["depth"])
+        assert all(a is b for a, b in zip(kept.images["depth"], handed_out))  # kept, not copied
+        for idx in (torch.arange(steps * envs), torch.tensor([0, 4, 5, 17, 29]), torch.tensor([7]),
+                    torch.randperm(steps * envs, generator=gen)[:11].sort().values):
+            ours, theirs = kept.gather_observations(idx), copied.gather_observations(idx)
+            assert all(torch.equal(ours[k], theirs[k]) for k in ("state", "depth"))
+
+
 def test_gae_matches_sb3s_rollout_buffer() -> None:
     rng = np.random.default_rng(2)
     steps, envs, gamma, lam = 9, 4, 0.97, 0.9

@@ -388,6 +388,12 @@ class Aggregator:
         ticket.obs.timings = ticket.timings.step_report(worker_timings, assemble_s, time.perf_counter() - ticket.started)
         return ticket.obs, ticket.spawn_obs
 
+    def hold_observations(self, count: int) -> None:
+        """The caller keeps up to ``count`` observations at once: the image segments they are views of
+        are offered again once let go, not replaced by new ones (:meth:`ImageSegments.hold`)."""
+        if self._images is not None:
+            self._images.hold(count)
+
     def _release_images(self, ticket: StepTicket, segments: ImageSegments, step: StepImages, failed: bool) -> None:
         """Done with the step's segment. After a failed request the images are copied out (the late
         worker may still write there); rows written over after their reply was read are lost."""

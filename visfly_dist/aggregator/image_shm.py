@@ -63,7 +63,8 @@ from visfly_dist.protocol.image_segment import (
 log = logging.getLogger(__name__)
 
 MAX_SEGMENTS = 6
-"""Segments kept per run: the steps in flight, and the observations callers still hold."""
+"""Segments kept per run: the steps in flight, and the observations callers still hold (more when a
+caller says it keeps more: :meth:`ImageSegments.hold`)."""
 STEP_HEADER_BYTES = 4096
 """Header of a step segment: the nonce, then one sequence number per worker of the step (up to 510)."""
 NAME_PART_CHARS = 48
@@ -165,6 +166,13 @@ class ImageSegments:
         self._segments: list[Segment] = []
         self._refused: set[tuple[str, int]] = set()
         self._seq = 0
+        self.max_segments = MAX_SEGMENTS
+        self._spawn_room = 0  # the most spawn rows a segment was made for
+
+    def hold(self, observations: int) -> None:
+        """A caller keeps up to ``observations`` observations at once (a trainer's rollout): keep that
+        many segments more, so that one it lets go is offered again instead of a new one made."""
+        self.max_segments = MAX_SEGMENTS + max(0, int(observations))
 
     def offer(self, workers: Sequence[tuple[str, int]], obs_rows: int, spawn_rows: int) -> StepImages | None:
         """A segment for a step of ``obs_rows`` observation rows and ``spawn_rows`` spawn rows sent to
@@ -176,11 +184,14 @@ class ImageSegments:
         if seg is None:
             for old in [s for s in self._segments if not s.busy and not s.held()]:
                 self._retire(old)  # too small
-            while len(self._segments) >= MAX_SEGMENTS:
+            while len(self._segments) >= self.max_segments:
                 self._retire(next(s for s in self._segments if not s.busy) if any(not s.busy for s in self._segments)
                              else self._segments[0])
             try:
-                seg = self._create(_room(obs_rows), _room(spawn_rows))
+                # as many spawn rows as any step asked for: a caller that holds many observations
+                # cycles through many segments, and one made smaller would soon be made again
+                self._spawn_room = max(self._spawn_room, _room(spawn_rows))
+                seg = self._create(_room(obs_rows), self._spawn_room)
             except OSError as exc:  # out of memory or descriptors: images travel inline
                 log.warning("cannot create an image segment (%s); images travel inline", exc)
                 self._refused |= asked

@@ -281,6 +281,12 @@ class TensorEnv:
             self._oob = (state, bounds, ((pos < bounds[:, 0]) | (pos > bounds[:, 1])).any(dim=1))
         return self._oob[2]
 
+    def hold_observations(self, count: int) -> None:
+        """Say that the caller keeps up to ``count`` of the observations it was handed at once (a
+        trainer keeping a rollout's images without copying them): the workers' image segments those
+        are views of are then offered again once let go, instead of new ones being made every step."""
+        self.aggregator.hold_observations(count)
+
     def scene_metadata(self, agent: int) -> dict[str, Any]:
         """Metadata of the scene agent ``agent`` flies in (goal regions and the like)."""
         return self.aggregator.agent_metadata(int(agent))

@@ -14,6 +14,9 @@ on :meth:`~visfly_dist.client.env_base.DroneEnvBase.step_tensor`:
    workers' shared-memory segment), rewards and end flags cross to the device in one copy through
    pinned memory (:mod:`visfly_dist.training.device_stage`), into the preallocated rollout tensors
    (``observations[t]``, ``actions[t]``, ``log_probs[t]``, ``values[t]``, ``rewards[t]``, ``dones[t]``).
+   A rollout of every agent at once keeps each step's images as the env handed them out (on a CPU,
+   views of the workers' segments, which the env keeps for it: ``hold_observations``), not copied;
+   a minibatch gathers its rows from them once.
 3. **Normalise on the device.** Vector entries (``state``, ``target``, ...) and rewards are scaled
    by running statistics kept as tensors (VecNormalize's formulas: clip 10, epsilon 1e-8, returns
    discounted by ``gamma``); images are never copied for it. A truncated episode (time limit,
@@ -244,12 +247,24 @@ class _Statistics:
 
 
 class Rollout:
-    """Tensors of one rollout, ``(n_steps, num_envs, ...)``, allocated once on the learner's device."""
+    """Tensors of one rollout, ``(n_steps, num_envs, ...)``, allocated once on the learner's device.
 
-    def __init__(self, space: spaces.Dict, n_steps: int, num_envs: int, device: torch.device) -> None:
+    With ``kept_images`` (a rollout of every agent at once) each image entry is kept as the env
+    handed it out, one ``(num_envs, C, H, W)`` tensor per step, never copied: the env never writes
+    into an observation it handed out, and the tensors (views of the workers' segments on a CPU)
+    are let go when the next rollout replaces them. A minibatch gathers its rows from them once.
+    """
+
+    def __init__(self, space: spaces.Dict, n_steps: int, num_envs: int, device: torch.device,
+                 kept_images: bool = False) -> None:
         shape = (n_steps, num_envs)
+        self.num_envs = num_envs
+        images = {k for k, s in space.spaces.items() if kept_images and len(s.shape or ()) == 3}
         self.observations = {k: torch.zeros(shape + tuple(s.shape or ()), dtype=_torch_dtype(np.dtype(s.dtype)), device=device)
-                             for k, s in space.spaces.items()}
+                             for k, s in space.spaces.items() if k not in images}
+        self.images: dict[str, list[torch.Tensor]] = {k: [] for k in images}  # step t's at [t]
+        self._image_rows = {k: (tuple(space.spaces[k].shape or ()), _torch_dtype(np.dtype(space.spaces[k].dtype)))
+                            for k in images}
         self.actions = torch.zeros(shape + (4,), device=device)
         self.log_probs = torch.zeros(shape, device=device)
         self.values = torch.zeros(shape, device=device)
@@ -258,6 +273,36 @@ class Rollout:
         self.held = torch.zeros(shape, dtype=torch.bool, device=device)  # no transition: the agent was held
         self.advantages = torch.zeros(shape, device=device)
         self.returns = torch.zeros(shape, device=device)
+
+    def store_observation(self, t: int, rows: slice | torch.Tensor, obs: dict[str, torch.Tensor]) -> None:
+        """The observation acted on at step ``t`` by agents ``rows`` (all of them for a kept image)."""
+        for k, v in obs.items():
+            kept = self.images.get(k)
+            if kept is None:
+                self.observations[k][t, rows] = v
+            elif t < len(kept):
+                kept[t] = v
+            else:
+                kept.append(v)
+
+    def gather_observations(self, idx: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The observations of the flat rows ``idx`` (``t * num_envs + agent``, ascending)."""
+        out = {k: v.reshape(-1, *v.shape[2:])[idx] for k, v in self.observations.items()}
+        if not self.images:
+            return out
+        steps = idx // self.num_envs
+        counts = torch.bincount(steps, minlength=len(next(iter(self.images.values())))).tolist()
+        for k, kept in self.images.items():
+            shape, dtype = self._image_rows[k]
+            rows = torch.empty((len(idx),) + shape, dtype=dtype, device=idx.device)
+            start = 0
+            for t, count in enumerate(counts):
+                if count:
+                    agents = idx[start:start + count] - t * self.num_envs
+                    torch.index_select(kept[t], 0, agents, out=rows[start:start + count])
+                    start += count
+            out[k] = rows
+        return out
 
     def compute_gae(self, last_values: torch.Tensor, gamma: float, gae_lambda: float) -> None:
         """Advantages and returns (GAE); ``last_values``: values of the observations after the last step.
@@ -309,8 +354,11 @@ class TensorPPO:
         self.device = model.device
         self.n_steps, self.num_envs = model.n_steps, env.num_envs
         self.norm = Normalizer(env.observation_space, env.num_envs, model.gamma, self.device, enabled=normalize)
-        self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device)
         self.groups = self._groups(overlap)
+        self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device,
+                               kept_images=len(self.groups) == 1)
+        if self.rollout.images:
+            env.hold_observations(self.n_steps + 1)  # the rollout's, and the one acted on next
         self.group_rows = [ids.to(self.device) for ids in self.groups]  # the same, on the learner's device
         self.stage = DeviceStage(self.device)  # a step's observation, rewards and flags: one copy to the device
         self.forward = GraphedForward(self.policy)  # the rollout's policy calls: CUDA graphs on a GPU
@@ -407,8 +455,7 @@ class TensorPPO:
         actions, values, log_probs = self.forward(obs)
         r = self.rollout
         rows = slice(None) if everyone else ids
-        for k, v in obs.items():
-            r.observations[k][t, rows] = v
+        r.store_observation(t, rows, obs)
         r.actions[t, rows] = actions
         r.values[t, rows] = values.flatten()
         r.log_probs[t, rows] = log_probs
@@ -484,7 +531,6 @@ class TensorPPO:
         transitions = (~r.held).reshape(size).nonzero().squeeze(1)  # held steps are not sampled
         if len(transitions) == 0:  # every agent was held for the whole rollout: nothing to learn from
             return
-        flat = {k: v.reshape(size, *v.shape[2:]) for k, v in r.observations.items()}
         actions, values, log_probs = r.actions.reshape(size, -1), r.values.reshape(size), r.log_probs.reshape(size)
         advantages, returns = r.advantages.reshape(size), r.returns.reshape(size)
         clip = model.clip_range  # a schedule once SB3 set the model up
@@ -502,8 +548,8 @@ class TensorPPO:
             for _ in range(model.n_epochs):
                 order = transitions[torch.randperm(len(transitions), device=self.device)]
                 for start in range(0, len(order), model.batch_size):
-                    idx = order[start:start + model.batch_size]
-                    batch = Minibatch({k: v[idx] for k, v in flat.items()}, actions[idx], values[idx],
+                    idx = order[start:start + model.batch_size].sort().values  # step by step: one gather per step
+                    batch = Minibatch(r.gather_observations(idx), actions[idx], values[idx],
                                       log_probs[idx], advantages[idx], returns[idx])
                     policy.optimizer.zero_grad()
                     stats.append(minibatch_gradients(policy, batch, settings, False, pool, shards))
