@@ -27,6 +27,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Sequence
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -137,3 +139,17 @@ def wait_for(predicate, timeout: float = 10.0, interval: float = 0.01) -> bool:
             return False
         time.sleep(interval)
     return True
+
+
+@contextmanager
+def native_switched_off(variable: str, loader: Any) -> Iterator[None]:
+    """A native library switched off by its ``variable`` (set to ``0``) while the block runs; its cached
+    loading (``loader``, an ``lru_cache``d function) forgotten before and after, so each side loads anew."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(variable, "0")
+        loader.cache_clear()
+        try:
+            yield
+        finally:
+            loader.cache_clear()
+    loader.cache_clear()

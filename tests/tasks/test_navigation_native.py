@@ -6,11 +6,13 @@ import dataclasses
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import torch
 
+from tests.helpers import native_switched_off
 from tests.tasks.helpers import hover
 from visfly_dist.dynamics import QuadState
 from visfly_dist.tasks.common import obstacle_terms
@@ -22,17 +24,9 @@ needs_library = pytest.mark.skipif(load_tasks()[0] is None, reason=f"native task
 GEOMETRY = ("distance", "target", "heading", "speed", "spin")
 
 
-@contextmanager
-def torch_path() -> Iterator[None]:
+def torch_path() -> Any:
     """The task's torch code: the library switched off by its variable, back on after."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv(DISABLE_ENV, "0")
-        load_tasks.cache_clear()
-        try:
-            yield
-        finally:
-            load_tasks.cache_clear()
-    load_tasks.cache_clear()
+    return native_switched_off(DISABLE_ENV, load_tasks)
 
 
 def _state(n: int, seed: int) -> tuple[QuadState, torch.Tensor]:

@@ -13,6 +13,8 @@ from gymnasium import spaces
 from visfly_dist.training.native_kernels import DISABLE_ENV, load_kernels
 from visfly_dist.training.tensor_ppo import Normalizer
 
+from tests.helpers import native_switched_off
+
 CPU = torch.device("cpu")
 needs_kernels = pytest.mark.skipif(load_kernels()[0] is None, reason=f"native kernels: {load_kernels()[1]}")
 SPACE = spaces.Dict({"state": spaces.Box(-np.inf, np.inf, (5,), np.float32),
@@ -24,14 +26,8 @@ ONE_ENTRY = spaces.Dict({"state": spaces.Box(-np.inf, np.inf, (17,), np.float32)
 @pytest.fixture
 def kernels_switched_off() -> Iterator[None]:
     """``VISFLY_NATIVE_KERNELS=0`` while the test runs, the library's loading forgotten before and after."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv(DISABLE_ENV, "0")
-        load_kernels.cache_clear()
-        try:
-            yield
-        finally:
-            load_kernels.cache_clear()
-    load_kernels.cache_clear()
+    with native_switched_off(DISABLE_ENV, load_kernels):
+        yield
 
 
 def _pair(space: spaces.Dict, num_envs: int, gamma: float = 0.9) -> tuple[Normalizer, Normalizer]:

@@ -12,6 +12,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include "../../native_clones.h"  // VF_CLONES
+
 namespace {
 
 constexpr int B = 16;         // agents per block
@@ -220,12 +222,6 @@ VF_INLINE void step(const Params& p, const void* const* inputs, const std::int64
 
 }  // namespace
 
-// x86-64: a second build for AVX2 and FMA (x86-64-v3), chosen at load time where the CPU has them.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define VF_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define VF_CLONES
-#endif
 
 extern "C" {
 

@@ -10,6 +10,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include "../../native_clones.h"  // VF_CLONES
+
 namespace {
 
 // Inlined into the exported functions, so each of their builds (VF_CLONES) has its own.
@@ -53,12 +55,6 @@ struct RewardParams {
 
 }  // namespace
 
-// x86-64: a second build for AVX2 and FMA (x86-64-v3), chosen at load time where the CPU has them.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define VF_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define VF_CLONES
-#endif
 
 extern "C" {
 

@@ -11,6 +11,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "../../native_clones.h"  // VF_CLONES
+
 namespace {
 
 #define VF_INLINE inline __attribute__((always_inline))
@@ -38,12 +40,6 @@ VF_INLINE void chan_update(const double* mean, const double* var, double* new_me
 
 }  // namespace
 
-// x86-64: a second build for AVX2 (x86-64-v3), chosen at load time where the CPU has it.
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define VF_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
-#else
-#define VF_CLONES
-#endif
 
 extern "C" {
 
