@@ -455,8 +455,7 @@ class Aggregator:
 
     def _pool_key(self, slot: int, spec: SpawnSpec) -> PoolKey:
         """The pool that next episodes in ``slot`` start from: its armed swap's scene, else its own."""
-        s = self.table.slots[slot]
-        return PoolKey(slot, s.source if s.incoming is None else s.incoming.move.source, spec)
+        return PoolKey(slot, self._next_scene(slot)[2], spec)
 
     def _next_scene(self, slot: int) -> tuple[str | None, str, str]:
         """``(worker, key, source)`` of the scene next episodes in ``slot`` start in."""

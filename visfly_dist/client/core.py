@@ -428,8 +428,8 @@ class TensorEnv:
         ended_rows = None
         if ids is not None and reset:
             ended_rows = _rows(observation, ids)
-        elif terminal == "ended":
-            ended_rows = _rows(observation, done.nonzero().squeeze(1))
+        elif terminal == "ended":  # no episode ended: no rows (views, no copy)
+            ended_rows = _rows(observation, done.nonzero().squeeze(1)) if reset else {k: v[:0] for k, v in observation.items()}
             info["terminal_observation"] = ended_rows
         if reset:  # the frame of this step is the env's alone until it is returned: written into in place
             observation = self._reset_agents(done, observation, ended=True, own=ids is not None,

@@ -263,8 +263,6 @@ class Rollout:
         self.observations = {k: torch.zeros(shape + tuple(s.shape or ()), dtype=_torch_dtype(np.dtype(s.dtype)), device=device)
                              for k, s in space.spaces.items() if k not in images}
         self.images: dict[str, list[torch.Tensor]] = {k: [] for k in images}  # step t's at [t]
-        self._image_rows = {k: (tuple(space.spaces[k].shape or ()), _torch_dtype(np.dtype(space.spaces[k].dtype)))
-                            for k in images}
         self.actions = torch.zeros(shape + (4,), device=device)
         self.log_probs = torch.zeros(shape, device=device)
         self.values = torch.zeros(shape, device=device)
@@ -293,8 +291,7 @@ class Rollout:
         steps = idx // self.num_envs
         counts = torch.bincount(steps, minlength=len(next(iter(self.images.values())))).tolist()
         for k, kept in self.images.items():
-            shape, dtype = self._image_rows[k]
-            rows = torch.empty((len(idx),) + shape, dtype=dtype, device=idx.device)
+            rows = kept[0].new_empty((len(idx),) + kept[0].shape[1:])
             start = 0
             for t, count in enumerate(counts):
                 if count:
