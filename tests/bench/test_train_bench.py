@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from visfly_dist.bench.train import CpuSnapshot, bench_train, busy_shares, process_cpu_s, worker_children
+from visfly_dist.bench.train import CpuMonitor, CpuSnapshot, bench_train, busy_shares, process_cpu_s, worker_children
 from visfly_dist.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -53,6 +53,20 @@ def test_busy_shares_from_snapshots():
     start = CpuSnapshot(wall=10.0, learner_cpu=1.0, workers={11: 2.0, 12: 0.5})
     end = CpuSnapshot(wall=12.0, learner_cpu=2.0, workers={11: 3.0, 12: 1.5})
     assert busy_shares(start, end) == {"learner_busy": 0.5, "workers_busy": 0.5, "worker_processes": 2}
+
+
+def test_the_monitors_own_sampling_is_not_the_learners_cpu():
+    """The sampler scans /proc in the training process; the learner's figure leaves its CPU out:
+    with the main thread asleep, the learner's CPU barely moves while the process's grows."""
+    monitor = CpuMonitor(period_s=0.0)  # scan back to back: as busy as the sampler can be
+    try:
+        learner0, process0 = monitor.learner_cpu_s(), time.process_time()
+        time.sleep(1.0)
+        learner1, process1 = monitor.learner_cpu_s(), time.process_time()
+    finally:
+        monitor.close()
+    assert process1 - process0 > 0.1  # the sampler worked
+    assert learner1 - learner0 < 0.05 * (process1 - process0)
 
 
 def test_process_cpu_of_this_process_and_of_a_missing_one():

@@ -10,10 +10,11 @@ budget, the seed and a temporary run folder changed; no checkpoints). It reports
   busy throughout; more with several torch threads);
 * ``workers_busy``: CPU seconds of the scene worker processes (from ``/proc/<pid>/stat``) over the
   loop's wall time times the number of workers (1.0 = every worker busy throughout);
-* ``learner_cpu_s_per_1k``: CPU seconds of the training process (every thread: Zenoh's included)
-  during rollout collection per 1,000 rollout env steps, *outside the policy network* (the
-  policy's forward passes timed on their thread and taken out): the serial part of the learner
-  that caps scaling; ``policy_cpu_s_per_1k`` is the part taken out.
+* ``learner_cpu_s_per_1k``: CPU seconds of the training process (every thread: Zenoh's included;
+  not the benchmark's own sampler of the workers' CPU) during rollout collection per 1,000 rollout
+  env steps, *outside the policy network* (the policy's forward passes timed on their thread and
+  taken out): the serial part of the learner that caps scaling; ``policy_cpu_s_per_1k`` is the
+  part taken out.
 
 Runs follow the host plan (:mod:`visfly_dist.training.host_plan`) unless ``--device``,
 ``--num-envs`` or ``--workers`` say otherwise; ``--algo ppo sb3-ppo`` runs both trainers in one go
@@ -100,6 +101,7 @@ class CpuMonitor:
     """Keeps the last CPU seconds seen of every worker child, sampling every ``period_s``.
 
     Workers can be gone (reaped) by the time a run ends; the sampler thread keeps their last value.
+    Its own scans of ``/proc`` run in the training process: :meth:`learner_cpu_s` leaves them out.
     """
 
     def __init__(self, period_s: float = 0.25) -> None:
@@ -123,9 +125,17 @@ class CpuMonitor:
         while not self._stop.wait(self._period_s):
             self._sample()
 
+    def learner_cpu_s(self) -> float:
+        """CPU seconds of this process (every thread) but the sampler's own."""
+        ident = self._thread.ident
+        assert ident is not None, "the sampler thread is started in __init__"
+        return time.process_time() - time.clock_gettime(time.pthread_getcpuclockid(ident))
+
     def snapshot(self) -> CpuSnapshot:
-        """Now: wall clock, this process's CPU, every worker's CPU (the last seen for exited ones)."""
-        return CpuSnapshot(time.perf_counter(), time.process_time(), self._sample())
+        """Now: wall clock, this process's CPU (the sampler's left out), every worker's CPU (the last
+        seen for exited ones)."""
+        workers = self._sample()
+        return CpuSnapshot(time.perf_counter(), self.learner_cpu_s(), workers)
 
     def close(self) -> None:
         self._stop.set()
@@ -148,10 +158,12 @@ class LoopClock:
 
 
 @contextlib.contextmanager
-def watch_trainers(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
+def watch_trainers(snapshot: Callable[[], CpuSnapshot],
+                   learner_cpu: Callable[[], float] = time.process_time) -> Iterator[LoopClock]:
     """While the block runs, time SB3's ``learn``, ``collect_rollouts`` and ``PPO.train``, and the
-    process CPU of rollout collection (SB3's and :class:`TensorPPO`'s) with the policy's forward
-    passes in it (their thread's CPU time); then restore every method."""
+    process CPU of rollout collection (SB3's and :class:`TensorPPO`'s; ``learner_cpu``: the
+    process's CPU seconds) with the policy's forward passes in it (their thread's CPU time); then
+    restore every method."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
     from stable_baselines3.common.policies import ActorCriticPolicy
@@ -176,11 +188,11 @@ def watch_trainers(snapshot: Callable[[], CpuSnapshot]) -> Iterator[LoopClock]:
 
     def cpu_of(method: Callable[..., Any], count: bool) -> Callable[..., Any]:
         def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
-            t0, c0 = time.perf_counter(), time.process_time()
+            t0, c0 = time.perf_counter(), learner_cpu()
             try:
                 return method(self, *args, **kwargs)
             finally:
-                clock.rollout_cpu_s += time.process_time() - c0
+                clock.rollout_cpu_s += learner_cpu() - c0
                 if count:
                     clock.rollout_s += time.perf_counter() - t0
                     clock.rollouts += 1
@@ -270,7 +282,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
                           progress=False, workers=count if remote is None else 0,
                           run_id=remote.run_id if remote else None, overrides=overrides)
         cfg = replace(cfg, **(changes or {}))
-        with watch_trainers(monitor.snapshot) as clock, contextlib.redirect_stdout(printed):
+        with watch_trainers(monitor.snapshot, monitor.learner_cpu_s) as clock, contextlib.redirect_stdout(printed):
             before = monitor.snapshot()
             result = train(cfg)
             after = monitor.snapshot()
