@@ -245,3 +245,24 @@ def test_episodes_cut_by_the_time_limit_are_bootstrapped_from_their_own_terminal
         assert cut_steps >= 1  # agents 1-3 were cut while agent 0 flew on
     finally:
         env.close()
+
+
+def test_each_ended_episode_is_recorded_with_its_own_flags_return_and_length() -> None:
+    """Only the ended rows reach the episode log, in index order, each with its own end flags."""
+    from types import SimpleNamespace
+
+    n = 6
+    flags = {k: torch.zeros(n, dtype=torch.bool) for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
+    flags["success"][1] = flags["collision"][4] = flags["out_of_bounds"][4] = True
+    flags["lost"][0] = flags["swapped"][2] = True  # rows that did not end this step: not recorded
+    done = torch.tensor([False, True, False, False, True, True])
+    truncated = torch.tensor([False, False, False, False, False, True])
+    info = {**flags, "episode_return": torch.arange(n, dtype=torch.float32) * 0.5,
+            "episode_length": torch.arange(n) * 10}
+    recorded: list[dict] = []
+    TensorPPO._record_episodes(SimpleNamespace(_on_episode=recorded.append), done, truncated, info)
+    assert [(e["episode"]["r"], e["episode"]["l"]) for e in recorded] == [(0.5, 10), (2.0, 40), (2.5, 50)]
+    assert [(e["is_success"], e["collision"], e["out_of_bounds"], e["lost"], e["swapped"], e["TimeLimit.truncated"])
+            for e in recorded] == [(True, False, False, False, False, False), (False, True, True, False, False, False),
+                                   (False, False, False, False, False, True)]
+    assert all(type(v) is bool for e in recorded for k, v in e.items() if k != "episode")

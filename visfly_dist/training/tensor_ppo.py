@@ -496,16 +496,16 @@ class TensorPPO:
 
     def _record_episodes(self, done: torch.Tensor, truncated: torch.Tensor, info: dict[str, Any]) -> None:
         """Hand every finished episode's outcome to the episode log."""
-        rows = done.nonzero().squeeze(1).cpu()
-        flags = {k: info[k][rows].cpu().numpy() for k in ("success", "collision", "out_of_bounds", "lost", "swapped")}
-        returns = info["episode_return"][rows].cpu().numpy()
-        lengths = info["episode_length"][rows].cpu().numpy()
-        cut = truncated[rows].cpu().numpy()
-        for j in range(len(rows)):
+        rows = done.nonzero().squeeze(1)
+        success, collision, out_of_bounds, lost, swapped, cut = torch.stack(
+            [info[k] for k in ("success", "collision", "out_of_bounds", "lost", "swapped")] + [truncated]
+        ).index_select(1, rows).tolist()  # one gather and one copy to Python for the six flags
+        returns = info["episode_return"].index_select(0, rows).tolist()
+        lengths = info["episode_length"].index_select(0, rows).tolist()
+        for j in range(len(returns)):
             assert self._on_episode is not None  # _take records only with a callback
-            self._on_episode({"is_success": bool(flags["success"][j]), "collision": bool(flags["collision"][j]),
-                              "out_of_bounds": bool(flags["out_of_bounds"][j]), "lost": bool(flags["lost"][j]),
-                              "swapped": bool(flags["swapped"][j]), "TimeLimit.truncated": bool(cut[j]),
+            self._on_episode({"is_success": success[j], "collision": collision[j], "out_of_bounds": out_of_bounds[j],
+                              "lost": lost[j], "swapped": swapped[j], "TimeLimit.truncated": cut[j],
                               "episode": {"r": float(returns[j]), "l": int(lengths[j])}})
 
     def _observation(self) -> dict[str, torch.Tensor]:
