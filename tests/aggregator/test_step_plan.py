@@ -59,3 +59,51 @@ def test_plans_are_kept_until_the_table_changes() -> None:
     table.orphan_worker("b")
     after = plans.get(agents)
     assert after is not first and sorted(after) == ["a"]
+
+
+def _reference(table: SlotTable, agents: np.ndarray, next_episode: bool) -> dict[str, list[tuple[str, list[int]]]]:
+    """The plan's rule spelled out: rows by slot (stable), one entry per run of one scene."""
+    out: dict[str, list[tuple[str, list[int]]]] = {}
+    last = None
+    for row in sorted(range(len(agents)), key=lambda r: int(table.agent_scene[agents[r]])):
+        s = table.slots[int(table.agent_scene[agents[row]])]
+        new = s.incoming is not None and (next_episode or bool(table.in_incoming[agents[row]]))
+        worker, key = (s.incoming.move.worker, s.incoming.move.key) if new and s.incoming else (s.worker, s.key)
+        if (worker, key, s.index) != last:
+            out.setdefault(str(worker), []).append((key, []))
+            last = (worker, key, s.index)
+        out[str(worker)][-1][1].append(row)
+    return out
+
+
+def test_small_and_large_agent_sets_follow_one_rule_and_carry_their_wire_arrays() -> None:
+    table = _placed(num_slots=12, agents_per_scene=3)
+    move = table.plan_swap(4, "gen:new", GENS)
+    assert move is not None
+    table.start_move(4, move)
+    table.arm(4, move, np.zeros((2, 3)), {})
+    table.take_over(np.array([13]))
+    rng = np.random.default_rng(0)
+    for size in (1, 3, 16, 17, 36):  # both sides of SMALL_PLAN, in and out of order
+        agents = rng.permutation(36)[:size] if size % 2 else np.sort(rng.permutation(36)[:size])
+        for next_episode in (False, True):
+            plan = plan_entries(table, agents, next_episode)
+            got = {w: [(k, e.rows[s:s + c].tolist()) for k, s, c in zip(e.keys, np.cumsum([0, *e.counts]), e.counts)]
+                   for w, e in plan.items()}
+            assert got == _reference(table, agents, next_episode)
+            for e in plan.values():
+                assert e.count_array.dtype == np.int32 and e.count_array.tolist() == e.counts
+                assert e.start_array.dtype == np.int64 and e.start_array.tolist() == e.starts
+                assert e.starts == [int(e.rows[s]) for s in np.cumsum([0, *e.counts[:-1]])]
+
+
+def test_a_kept_plan_says_whether_its_agents_increase_and_goes_with_the_table() -> None:
+    table = _placed()
+    plans = StepPlans(table)
+    assert plans.get(np.arange(9)).increasing and not plans.get(np.array([3, 1, 2])).increasing
+    first = plans.get(np.arange(9))
+    assert first["b"].count_array.tolist() == first["b"].counts
+    table.orphan_worker("b")  # the table changes: the kept plan and its arrays are not used again
+    after = plans.get(np.arange(9))
+    assert after is not first and sorted(after) == ["a"] and after.increasing
+    assert after["a"].count_array.tolist() == after["a"].counts == first["a"].counts

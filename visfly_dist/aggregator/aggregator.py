@@ -44,7 +44,6 @@ from visfly_dist.aggregator.assembler import (
     LastGood,
     Observation,
     empty_observation,
-    reply_rows,
     scatter_reply,
 )
 from visfly_dist.aggregator.config import PoolConfig, SceneSetConfig, new_run_id
@@ -61,6 +60,10 @@ from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, step_message
 
 log = logging.getLogger(__name__)
+
+_NO_AGENTS = np.zeros(0, np.int64)
+_NO_POSES = np.zeros((0, 7))
+_NO_ENTRIES = WorkerEntries()
 
 __all__ = ["Aggregator", "Observation", "StepTicket"]
 
@@ -290,28 +293,32 @@ class Aggregator:
         t_start = time.perf_counter()
         agents = self._agents(agents)
         rows = pose_rows(poses, agents, self.num_agents)
-        spawn_agents = self._agents(np.zeros(0, np.int64) if spawn_agents is None else spawn_agents)
-        spawn_rows = pose_rows(np.zeros((0, 7)) if spawn_poses is None else spawn_poses, spawn_agents, self.num_agents)
+        spawn_agents = self._agents(_NO_AGENTS if spawn_agents is None else spawn_agents)
+        spawn_rows = pose_rows(_NO_POSES if spawn_poses is None else spawn_poses, spawn_agents, self.num_agents)
         gens = self._maintain()
         obs_plan = self._plans.get(agents)
-        spawn_plan = plan_entries(self.table, spawn_agents, next_episode=True)
-        workers = sorted(set(obs_plan) | set(spawn_plan))
+        spawn_plan = plan_entries(self.table, spawn_agents, next_episode=True) if len(spawn_agents) else {}
+        workers = sorted(obs_plan.keys() | spawn_plan.keys())
         generation = [gens[w] if w in gens else self._pool.generation(w) for w in workers]
-        segments, step = self._images, self._step_images(list(zip(workers, generation)), agents, spawn_agents)
+        segments = self._images
+        step = self._step_images(list(zip(workers, generation)), len(agents), spawn_agents, obs_plan.increasing)
         ticket = StepTicket(agents, spawn_agents,
                             empty_observation(self.cameras, len(agents), None if step is None else step.obs),
                             empty_observation(self.cameras, len(spawn_agents), None if step is None else step.spawn), [],
                             t_start, step)
-        none = WorkerEntries()
         requests, parts = [], []
         for wid, gen in zip(workers, generation):
-            obs, spawn = obs_plan.get(wid, none), spawn_plan.get(wid, none)
-            poses_w = np.concatenate([rows[obs.rows], spawn_rows[spawn.rows]])
-            times = np.full(len(obs.keys) + len(spawn.keys), float(sim_time)) if sim_time else None
+            obs, spawn = obs_plan.get(wid, _NO_ENTRIES), spawn_plan.get(wid, _NO_ENTRIES)
+            if spawn.keys:
+                keys, counts = obs.keys + spawn.keys, np.concatenate((obs.count_array, spawn.count_array))
+                poses_w = np.concatenate((rows[obs.rows], spawn_rows[spawn.rows]))
+            else:  # the plan's own list and array: nothing is written to a message
+                keys, counts, poses_w = obs.keys, obs.count_array, rows[obs.rows]
+            times = np.full(len(keys), float(sim_time)) if sim_time else None
             target = None if step is None or segments is None else segments.target(
-                step, (wid, gen), obs.starts, spawn.starts)
-            message = step_message(obs.keys + spawn.keys, np.array(obs.counts + spawn.counts, np.int32), poses_w,
-                                   search_radius=self.search_radius, times=times, image_segment=target)
+                step, (wid, gen), obs.start_array, spawn.start_array)
+            message = step_message(keys, counts, poses_w, search_radius=self.search_radius, times=times,
+                                   image_segment=target)
             requests.append((wid, message))
             parts.append((obs, spawn))
         t0 = time.perf_counter()
@@ -321,14 +328,14 @@ class Aggregator:
         ticket.timings.extra["plan_s"] = t0 - t_start
         return ticket
 
-    def _step_images(self, workers: list[tuple[str, int]], agents: np.ndarray,
-                     spawn_agents: np.ndarray) -> StepImages | None:
+    def _step_images(self, workers: list[tuple[str, int]], obs_rows: int, spawn_agents: np.ndarray,
+                     obs_increasing: bool) -> StepImages | None:
         """The image segment of a step to ``workers`` (``(worker, generation)`` pairs), when its rows
-        can be laid out in observation order (agents in increasing order, as the env always asks):
-        then each entry's rows are one run."""
-        if self._images is None or not workers or not (increasing(agents) and increasing(spawn_agents)):
+        can be laid out in observation order (``obs_increasing``: the agents are in increasing order,
+        as the env always asks; the spawn agents too): then each entry's rows are one run."""
+        if self._images is None or not workers or not (obs_increasing and increasing(spawn_agents)):
             return None
-        return self._images.offer(workers, len(agents), len(spawn_agents))
+        return self._images.offer(workers, obs_rows, len(spawn_agents))
 
     def ready(self, ticket: StepTicket) -> bool:
         """Whether every reply of ``ticket`` is in (``collect`` will not wait)."""
@@ -366,13 +373,11 @@ class Aggregator:
                 self._handle_failure(reply, part.slots)
                 continue
             message = reply.message
-            n_obs = len(part.obs_rows)
-            worker_timings.append(dict(message.get("timings", {})))
-            scatter_reply(ticket.obs, part.obs_rows, reply_rows(message, slice(None, n_obs)), self.cameras,
+            timings = message.get("timings")
+            if isinstance(timings, dict):
+                worker_timings.append(timings)  # read only: the decoded reply's own map
+            scatter_reply(ticket.obs, part.obs_rows, ticket.spawn_obs, part.spawn_rows, message, self.cameras,
                           reply.worker_id, in_place)
-            if len(part.spawn_rows):
-                scatter_reply(ticket.spawn_obs, part.spawn_rows, reply_rows(message, slice(n_obs, None)), self.cameras,
-                              reply.worker_id, in_place)
         if segments is not None and step is not None:
             self._release_images(ticket, segments, step, failed)
         if ticket.obs.lost.any():

@@ -68,13 +68,16 @@ def empty_observation(cameras: Sequence[CameraSpec], n: int, images: dict[str, n
                        np.empty(n, np.float32), np.ones(n, bool))
 
 
-def scatter_reply(out: Observation, rows: np.ndarray, reply: dict[str, Any], cameras: Sequence[CameraSpec],
-                  worker_id: str, images_in_place: bool = False) -> None:
-    """Write a ``step_result`` whose rows belong to ``out``'s rows ``rows``; checks every shape first.
+def scatter_reply(obs: Observation, obs_rows: np.ndarray, spawn: Observation, spawn_rows: np.ndarray,
+                  reply: dict[str, Any], cameras: Sequence[CameraSpec], worker_id: str,
+                  images_in_place: bool = False) -> None:
+    """Write a ``step_result`` whose first ``len(obs_rows)`` rows belong to ``obs``' rows ``obs_rows``
+    and the others to ``spawn``'s rows ``spawn_rows``; checks every shape first (one pass for both).
 
-    ``images_in_place``: the worker wrote the images straight into ``out``'s (a step segment).
+    ``images_in_place``: the worker wrote the images straight into ``obs``' and ``spawn``'s (a step segment).
     """
-    n = len(rows)
+    n_obs = len(obs_rows)
+    n = n_obs + len(spawn_rows)
     images = reply.get("images") or {}
     expected: list[tuple[str, Any, tuple[int, ...]]] = (
         [] if images_in_place else [(cam.name, images.get(cam.name), (n, *cam.shape)) for cam in cameras])
@@ -84,12 +87,15 @@ def scatter_reply(out: Observation, rows: np.ndarray, reply: dict[str, Any], cam
         if not isinstance(value, np.ndarray) or value.shape != shape:
             got = getattr(value, "shape", type(value).__name__)
             raise ProtocolError(f"worker {worker_id!r} sent {name} of shape {got}; expected {shape}")
-    for cam in cameras:
+    parts = ((obs, obs_rows, slice(0, n_obs)), (spawn, spawn_rows, slice(n_obs, n))) if n > n_obs else \
+        ((obs, obs_rows, slice(None)),)
+    for out, rows, part in parts:
         if not images_in_place:
-            out.images[cam.name][rows] = images[cam.name]
-    for key in QUERY_FIELDS:
-        getattr(out, key)[rows] = reply[key]
-    out.lost[rows] = False
+            for cam in cameras:
+                out.images[cam.name][rows] = images[cam.name][part]
+        for key in QUERY_FIELDS:
+            getattr(out, key)[rows] = reply[key][part]
+        out.lost[rows] = False
 
 
 def copy_rows(out: Observation, rows: np.ndarray, source: Observation, source_rows: np.ndarray) -> None:
@@ -99,12 +105,6 @@ def copy_rows(out: Observation, rows: np.ndarray, source: Observation, source_ro
     for key in QUERY_FIELDS:
         getattr(out, key)[rows] = getattr(source, key)[source_rows]
     out.lost[rows] = True
-
-
-def reply_rows(message: dict[str, Any], rows: slice) -> dict[str, Any]:
-    """The per-agent arrays of a step reply (images per camera), cut to ``rows``."""
-    return {k: (v[rows] if k != "images" else {c: img[rows] for c, img in v.items()})
-            for k, v in message.items() if k in ("images", "collision", "inside", "nearest", "distance")}
 
 
 PENDING_LIMIT = 2

@@ -200,18 +200,20 @@ class ImageSegments:
         seg.busy = True
         return StepImages(seg, *seg.lend(self._layouts, obs_rows, spawn_rows))
 
-    def target(self, step: StepImages, worker: tuple[str, int], obs_starts: Sequence[int],
-               spawn_starts: Sequence[int]) -> SegmentTarget | None:
+    def target(self, step: StepImages, worker: tuple[str, int], obs_starts: Sequence[int] | np.ndarray,
+               spawn_starts: Sequence[int] | np.ndarray) -> SegmentTarget | None:
         """The ``image_segment`` of ``worker``'s request in ``step``: its entries' first rows (observation
-        entries, then spawn entries, Python ints as step plans hold them), its own header slot; None if it
-        gets its images inline."""
+        entries, then spawn entries, as step plans hold them), its own header slot; None if it gets its
+        images inline."""
         lane = len(step.targets)
         seq_offset = SEQ_OFFSET + SEQ.size * lane
         if worker in self._refused or seq_offset + SEQ.size > STEP_HEADER_BYTES:
             return None
         seg = step.segment
         self._seq += 1
-        rows = (*obs_starts, *(seg.obs_rows + r for r in spawn_starts))
+        rows = np.asarray(obs_starts, np.int64)  # the plan's array as it is when no spawn entry follows
+        if len(spawn_starts):
+            rows = np.concatenate((rows, np.asarray(spawn_starts, np.int64) + seg.obs_rows))
         target = SegmentTarget(seg.name, seg.nonce, len(seg.mm), self._seq, seg.blocks, self.pid, seg.fd,
                                seq_offset, rows)
         SEQ.pack_into(seg.mm, seq_offset, 0)

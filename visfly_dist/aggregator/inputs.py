@@ -6,6 +6,7 @@ anything is sent to a worker.
 
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import numpy as np
@@ -63,17 +64,20 @@ def pose_rows(poses: np.ndarray, agents: np.ndarray, num_agents: int) -> np.ndar
     rows = np.asarray(rows, dtype=np.float32)
     if not len(rows):
         return rows
-    if not np.isfinite(rows).all():
-        bad = np.flatnonzero(~np.isfinite(rows).all(axis=1))
-        raise ConfigError(f"poses of agents {agents[bad][:10].tolist()} are not finite")
+    if not math.isfinite(rows.sum()):  # a sum that overflowed is finite row by row: checked below
+        finite = np.isfinite(rows).all(axis=1)
+        if not finite.all():
+            raise ConfigError(f"poses of agents {agents[np.flatnonzero(~finite)][:10].tolist()} are not finite")
     quats = rows[:, 3:]
-    norms = np.sqrt(np.einsum("ij,ij->i", quats, quats))
-    low, high = norms.min(), norms.max()
+    norms2 = np.einsum("ij,ij->i", quats, quats)
+    # sqrt is monotonic: the extreme norms, exactly; as Python floats, whose differences from 1 are the
+    # float32 ones (exact near 1), and no float32 lies between float32(1e-4) and 1e-4
+    low, high = float(np.sqrt(norms2.min())), float(np.sqrt(norms2.max()))
     if low < 1e-6:
         raise ConfigError("poses hold a zero quaternion; quaternions are wxyz and must be unit")
-    if high - 1 > 1e-4 or 1 - low > 1e-4:  # the largest |norm - 1| (float32 differences near 1 are exact)
+    if high - 1 > 1e-4 or 1 - low > 1e-4:  # the largest |norm - 1|
         rows = rows.copy()
-        rows[:, 3:] /= norms[:, None]
+        rows[:, 3:] /= np.sqrt(norms2)[:, None]
     return rows
 
 

@@ -143,12 +143,20 @@ class BatchTimings:
                "assemble_s": assemble_s, **self.extra}
         own = set(out)
         worker_total = 0.0
-        for wt in workers:
-            stages = {k: float(v) for k, v in wt.items() if isinstance(v, (int, float)) and k != "total_s"}
-            for stage, seconds in stages.items():
+        for wt in workers:  # one pass over each worker's map: its stages, and its total or their sum
+            total, summed = None, 0.0
+            for stage, value in wt.items():
+                if not isinstance(value, (int, float)):
+                    continue
+                seconds = float(value)
+                if stage == "total_s":
+                    total = seconds
+                    continue
+                summed += seconds
                 name = f"worker_{stage}" if stage in own else stage  # the worker's decode_s is not ours
-                out[name] = max(out.get(name, 0.0), seconds)
-            worker_total = max(worker_total, float(wt.get("total_s", sum(stages.values()))))
+                before = out.get(name, 0.0)
+                out[name] = seconds if seconds > before else before
+            worker_total = max(worker_total, summed if total is None else total)
         out["worker_total_s"] = worker_total
         out["transport_s"] = max(0.0, self.fanout_s + self.wait_s - worker_total)
         out["total_s"] = total_s

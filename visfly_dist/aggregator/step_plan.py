@@ -6,7 +6,8 @@ over, its agents in the old and in the incoming scene are entries of their own, 
 consecutive rows, so that images can be written in place). The plan depends only
 on the agents and on the slot table, so :class:`StepPlans` keeps it while the table's revision is
 unchanged: a training loop steps the same agents (all, or each of its groups) on the same workers
-every time.
+every time. Each entry list also comes as the arrays a request carries (``count_array``,
+``start_array``), made once with the plan, not per step.
 """
 
 from __future__ import annotations
@@ -15,12 +16,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from visfly_dist.aggregator.inputs import increasing
 from visfly_dist.aggregator.slots import SlotTable
 
+SMALL_PLAN = 16
+"""Agent sets up to this size are planned with lists (a step's few spawn rows); larger ones with NumPy."""
 MAX_CACHED_PLANS = 8
 """Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
-__all__ = ["StepPlans", "WorkerEntries", "plan_entries"]
+__all__ = ["Plan", "StepPlans", "WorkerEntries", "plan_entries"]
 
 
 @dataclass(frozen=True)
@@ -32,35 +36,52 @@ class WorkerEntries:
     rows: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the agents' rows, in request order
     slots: list[int] = field(default_factory=list)     # slot of each entry
     starts: list[int] = field(default_factory=list)    # each entry's first row
+    count_array: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))  # counts as the wire's int32
+    start_array: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # starts as an int64 array
+
+
+class Plan(dict[str, WorkerEntries]):
+    """:func:`plan_entries` of one agent set, per worker, and whether the agents are in increasing
+    order (then each entry's rows are one run: images can be laid out in observation order)."""
+
+    increasing: bool = False
 
 
 def plan_entries(table: SlotTable, agents: np.ndarray, next_episode: bool = False) -> dict[str, WorkerEntries]:
     """Per worker, the entries of ``agents`` (rows index ``agents``) in the scenes of their running
     episodes, or with ``next_episode`` where their next episodes start; agents of orphan slots are
     left out."""
-    if len(agents) == 0:
+    n = len(agents)
+    if n == 0:
         return {}
-    slot_of = table.agent_scene[agents]
-    order = np.argsort(slot_of, kind="stable")
-    incoming = table.in_incoming[agents] | table.armed[slot_of] if next_episode else table.in_incoming[agents]
-    code = (slot_of * 2 + incoming)[order]
-    cuts = (np.flatnonzero(code[1:] != code[:-1]) + 1).tolist()  # plain lists: a few entries cost no NumPy call each
-    starts, codes, firsts = [0, *cuts], code.tolist(), order.tolist()
-    out: dict[str, tuple[list[str], list[int], list[np.ndarray], list[int], list[int]]] = {}
-    for start, end in zip(starts, [*cuts, len(codes)]):
+    if n <= SMALL_PLAN:  # a few agents (a step's spawn rows): lists, fewer NumPy calls
+        slot_list = table.agent_scene[agents].tolist()
+        inc = (table.in_incoming[agents] | table.armed[slot_list] if next_episode else table.in_incoming[agents]).tolist()
+        order = sorted(range(n), key=slot_list.__getitem__)  # stable, as argsort's "stable"
+        codes = [slot_list[r] * 2 + inc[r] for r in order]
+        cuts = [i for i in range(1, n) if codes[i] != codes[i - 1]]
+    else:
+        slot_of = table.agent_scene[agents]
+        order_array = np.argsort(slot_of, kind="stable")
+        incoming = table.in_incoming[agents] | table.armed[slot_of] if next_episode else table.in_incoming[agents]
+        code = (slot_of * 2 + incoming)[order_array]
+        cuts = (np.flatnonzero(code[1:] != code[:-1]) + 1).tolist()  # plain lists: a few entries cost no NumPy call each
+        codes, order = code.tolist(), order_array.tolist()
+    out: dict[str, tuple[list[str], list[int], list[int], list[int], list[int]]] = {}
+    for start, end in zip([0, *cuts], [*cuts, n]):
         slot, new = divmod(codes[start], 2)
         s = table.slots[slot]
         worker, key = (s.incoming.move.worker, s.incoming.move.key) if new and s.incoming is not None else (s.worker, s.key)
         if worker is None:
             continue
-        keys, cnts, parts, served, first = out.setdefault(worker, ([], [], [], [], []))
+        keys, cnts, rows, served, first = out.setdefault(worker, ([], [], [], [], []))
         keys.append(key)
         cnts.append(end - start)
-        parts.append(order[start:end])
+        rows.extend(order[start:end])
         served.append(slot)
-        first.append(firsts[start])
-    return {w: WorkerEntries(k, c, np.concatenate(p), sl, f)
-            for w, (k, c, p, sl, f) in out.items()}
+        first.append(order[start])
+    return {w: WorkerEntries(k, c, np.array(r, np.int64), sl, f, np.array(c, np.int32), np.array(f, np.int64))
+            for w, (k, c, r, sl, f) in out.items()}
 
 
 class StepPlans:
@@ -68,10 +89,10 @@ class StepPlans:
 
     def __init__(self, table: SlotTable) -> None:
         self._table = table
-        self._plans: dict[bytes, dict[str, WorkerEntries]] = {}
+        self._plans: dict[bytes, Plan] = {}
         self._revision = -1
 
-    def get(self, agents: np.ndarray) -> dict[str, WorkerEntries]:
+    def get(self, agents: np.ndarray) -> Plan:
         key = agents.tobytes()
         if self._revision != self._table.revision:
             self._plans.clear()
@@ -80,5 +101,6 @@ class StepPlans:
         if plan is None:
             if len(self._plans) >= MAX_CACHED_PLANS:
                 self._plans.clear()
-            plan = self._plans[key] = plan_entries(self._table, agents)
+            plan = self._plans[key] = Plan(plan_entries(self._table, agents))
+            plan.increasing = increasing(agents)
         return plan

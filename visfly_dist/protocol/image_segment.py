@@ -111,7 +111,7 @@ class SegmentTarget:
     pid: int
     fd: int
     seq_offset: int = SEQ_OFFSET
-    entry_rows: tuple[int, ...] | None = None
+    entry_rows: tuple[int, ...] | np.ndarray | None = None  # the learner's int64 array, parsed as a tuple
 
     def path(self) -> str:
         """Where a worker on the learner's host opens the segment (two ints: nothing else is reachable)."""
