@@ -226,3 +226,24 @@ def test_put_rows_of_a_few_initial_states_matches_where_over_all_agents():
         assert torch.equal(getattr(put, f.name), getattr(where, f.name)), f.name
     put.pos.sum().backward()
     assert action.grad is not None and action.grad[[1, 3]].abs().sum() > 0 and not action.grad[[0, 2]].any()
+
+
+@pytest.mark.parametrize("controller", ["ctbr", "ps"])
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_restart_matches_put_rows_of_initial_states_and_keeps_gradients(controller, dtype):
+    """``restart`` (a reset's one operation per component) gives what putting ``initial_state``
+    rows gives, bit for bit, with an action delay queue too; gradients still flow through the rows kept."""
+    quad = _quad(controller, n=5, dtype=dtype, action_delay_s=0.06)
+    assert quad.config.delay_steps > 0
+    gen = torch.Generator().manual_seed(4)
+    state = quad.initial_state(pos=torch.rand(5, 3, generator=gen, dtype=dtype) + 1.0)
+    action = (torch.rand(5, 4, generator=gen, dtype=dtype) * 2 - 1).requires_grad_()
+    for _ in range(3):
+        state = quad.step(state, action)
+    idx, starts = torch.tensor([3, 0]), torch.rand(2, 3, generator=gen, dtype=torch.float32) * 5.0 - 1.0
+    put, restarted = state.put_rows(idx, quad.initial_state(starts, agents=2)), quad.restart(state, idx, starts)
+    for f in dataclasses.fields(QuadState):
+        a, b = getattr(put, f.name), getattr(restarted, f.name)
+        assert a.dtype == b.dtype and torch.equal(a, b), f.name
+    restarted.pos.sum().backward()
+    assert action.grad is not None and action.grad[[1, 2, 4]].abs().sum() > 0 and not action.grad[[0, 3]].any()

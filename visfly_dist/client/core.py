@@ -146,6 +146,7 @@ class TensorEnv:
         self.quad = Quadrotor(config.dynamics_config(), load_airframe(config.airframe), num_agents=n, device=self.device)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
+        self._camera_names = [c.name for c in self.cameras]
         self._image_noise = {c.name: SensorNoise(config.noise.get(c.name, ()), c.kind, c.far) for c in self.cameras}
         self._state_noise = SensorNoise(config.noise.get(STATE_NOISE_KEY, ()), STATE_NOISE_KEY)
         self._closed = True
@@ -185,8 +186,11 @@ class TensorEnv:
         self.sim_time = 0.0   # s: where the moving obstacles are for the group being stepped or taken in
         self._steps_sent = np.zeros(n, dtype=np.int64)  # per agent, since the last reseed
         self._everyone = torch.ones(n, dtype=torch.bool, device=self.device)  # read only: the group of a plain step
+        self._everyone_np = _read_only(np.ones(n, dtype=bool))  # its members and agents, as _send needs them
+        self._all_agents = _read_only(np.arange(n))
         self._no_one = torch.zeros(n, dtype=torch.bool, device=self.device)  # read only: nobody held
         self._oob: tuple[QuadState, torch.Tensor, torch.Tensor] | None = None  # out_of_bounds of one state
+        self._box: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # bounds, its lower and upper corners
         self._lost_holds = LostHolds(n, config.lost_hold_s)  # agents whose worker failed wait, up to a bound
 
     # ----- task hooks ---------------------------------------------------------------------------
@@ -277,8 +281,10 @@ class TensorEnv:
         """``(N,)`` bool: the agent left its scene's flight box."""
         state, bounds = self.state, self.bounds
         if self._oob is None or self._oob[0] is not state or self._oob[1] is not bounds:
+            if self._box is None or self._box[0] is not bounds:  # contiguous corners: compares at half the cost
+                self._box = (bounds, bounds[:, 0].contiguous(), bounds[:, 1].contiguous())
             pos = state.pos.detach()
-            self._oob = (state, bounds, ((pos < bounds[:, 0]) | (pos > bounds[:, 1])).any(dim=1))
+            self._oob = (state, bounds, ((pos < self._box[1]) | (pos > self._box[2])).any(dim=1))
         return self._oob[2]
 
     def hold_observations(self, count: int) -> None:
@@ -329,8 +335,9 @@ class TensorEnv:
     def _send(self, actions: torch.Tensor, group: torch.Tensor, hold: torch.Tensor | None) -> _InFlight:
         """Advance the agents of ``group`` (``(N,)`` bool) and put their observation on the wire."""
         t0 = time.perf_counter()
-        members = group.cpu().numpy()
-        agents = np.flatnonzero(members)
+        everyone = group is self._everyone
+        members = self._everyone_np if everyone else group.cpu().numpy()
+        agents = self._all_agents if everyone else np.flatnonzero(members)
         held = self._no_one if hold is None else torch.as_tensor(hold, dtype=torch.bool, device=self.device)
         full = len(agents) == self.num_envs and hold is None  # every agent moves: no masking needed
         before = self.state
@@ -348,11 +355,15 @@ class TensorEnv:
             self.state = after
         self.actions = actions if alone else torch.where(group[:, None], actions, self.actions)
         t1 = time.perf_counter()
-        spawn_agents = np.flatnonzero(~self._prepared & members)
+        spawn_agents = np.flatnonzero(~self._prepared if everyone else ~self._prepared & members)
         poses = after.pose().detach().cpu().numpy()
         # groups stepped in turn share one clock: a group's k-th step happens at k * ctrl_dt
-        self._steps_sent[agents] += 1
-        sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
+        if everyone:
+            self._steps_sent += 1
+            sim_time = int(self._steps_sent.max()) * self.config.ctrl_dt
+        else:
+            self._steps_sent[agents] += 1
+            sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
         self.sim_time = sim_time
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,
@@ -395,9 +406,14 @@ class TensorEnv:
         self.step_mask = live
         self.episode_step = self.episode_step + 1 if full else self.episode_step + live.long()
         lost = self.frame.lost if full else self.frame.lost & live  # lost and not held: cut now
-        success = self.get_success() & ~lost
+        any_lost = bool(obs.lost.any())  # else ``lost`` is all False (the group's rows are obs's): no masking
+        success = self.get_success()
+        if any_lost:
+            success = success & ~lost
         self.success = success if full else success & live
-        failure = self.get_failure() & ~lost & ~self.success
+        failure = self.get_failure() & ~self.success
+        if any_lost:
+            failure = failure & ~lost
         self.failure = failure if full else failure & live
         reward = self.get_reward()
         if not full and not bool(live.all()):
@@ -407,11 +423,12 @@ class TensorEnv:
         self.update_task_state()
 
         terminated = self.success | self.failure if self.success_ends_episode else self.failure
-        truncated = ((self.episode_step >= self.config.max_episode_steps) | lost) & ~terminated
+        timed_out = self.episode_step >= self.config.max_episode_steps
+        truncated = ((timed_out | lost) if any_lost else timed_out) & ~terminated
         terminated, truncated = self.expand_resets(terminated, truncated if full else truncated & live)
         swapped = self._take_swapped(flight.members)
         if swapped is None:
-            swapped = torch.zeros_like(terminated)
+            swapped = self._no_one
         else:
             swapped = swapped & ~terminated
             truncated = truncated | swapped
@@ -424,16 +441,17 @@ class TensorEnv:
                                 "episode_length": self.episode_step}
         done = terminated | truncated
         reset = bool(done.any())
+        ended = done.nonzero().squeeze(1) if reset else None
         # the terminal rows handed out are taken before a reset writes the new rows into the frame's images
         ended_rows = None
         if ids is not None and reset:
             ended_rows = _rows(observation, ids)
         elif terminal == "ended":  # no episode ended: no rows (views, no copy)
-            ended_rows = _rows(observation, done.nonzero().squeeze(1)) if reset else {k: v[:0] for k, v in observation.items()}
+            ended_rows = {k: v[:0] for k, v in observation.items()} if ended is None else _rows(observation, ended)
             info["terminal_observation"] = ended_rows
-        if reset:  # the frame of this step is the env's alone until it is returned: written into in place
+        if ended is not None:  # the frame of this step is the env's alone until it is returned: written into in place
             observation = self._reset_agents(done, observation, ended=True, own=ids is not None,
-                                             fresh=ids is None and terminal == "ended")
+                                             fresh=ids is None and terminal == "ended", idx=ended)
         self.step_timings = {**self.frame_timings, "physics_s": flight.physics_s,
                              "observe_s": self.frame_timings.get("total_s", t1 - t0),
                              "total_s": time.perf_counter() - flight.started}
@@ -511,6 +529,8 @@ class TensorEnv:
         be in a swapped-in scene get their next start drawn there."""
         self._redraw_for_new_scene(members)
         self._switched |= self.aggregator.take_switched()
+        if not self._switched.any():
+            return None
         swapped = self._switched & members
         if not swapped.any():
             return None
@@ -522,10 +542,13 @@ class TensorEnv:
         return swapped
 
     def _redraw_for_new_scene(self, agents: np.ndarray) -> None:
-        """Draw again the next start of those of ``agents`` (``(N,)`` bool) whose next episode will
-        be in a swap armed since it was drawn: it lies in the new scene."""
+        """Draw again the next start of those of ``agents`` (``(N,)`` bool, or indices) whose next
+        episode will be in a swap armed since it was drawn: it lies in the new scene."""
         self._next_scene |= self.aggregator.take_next_scene()
-        redraw = self._next_scene & agents
+        if not self._next_scene.any():  # most steps: no swap armed
+            return
+        redraw = np.zeros_like(self._next_scene)
+        redraw[agents] = self._next_scene[agents]
         if redraw.any():
             self._next_scene &= ~redraw
             self._draw_next_starts(torch.as_tensor(np.flatnonzero(redraw), device=self.device))
@@ -535,8 +558,7 @@ class TensorEnv:
         return terminated, truncated
 
     def _frame(self, obs: Any) -> SensorFrame:
-        return SensorFrame.from_observation(obs, self.device, self._image_noise, self.generator,
-                                            cameras=[c.name for c in self.cameras])
+        return SensorFrame.from_observation(obs, self.device, self._image_noise, self.generator, cameras=self._camera_names)
 
     def _store_prepared(self, obs: Any, rows: np.ndarray, agents: np.ndarray) -> None:
         store = self._prepared_obs
@@ -546,12 +568,13 @@ class TensorEnv:
             getattr(store, key)[agents] = getattr(obs, key)[rows]
         self._prepared[agents] = True
 
-    def _draw_next_starts(self, idx: torch.Tensor) -> None:
-        """Draw the start of the next episode of agents ``idx`` (its view is rendered with the next step)."""
+    def _draw_next_starts(self, idx: torch.Tensor, idx_np: np.ndarray | None = None) -> None:
+        """Draw the start of the next episode of agents ``idx`` (its view is rendered with the next
+        step); ``idx_np``: the same indices in numpy, if the caller has them."""
         if len(idx) == 0:
             return
-        self._next_pos[idx] = self.spawn_positions(idx).detach().to(self._next_pos.dtype)
-        self._prepared[idx.cpu().numpy()] = False
+        self._next_pos.index_copy_(0, idx, self.spawn_positions(idx).detach().to(self._next_pos.dtype))
+        self._prepared[idx.cpu().numpy() if idx_np is None else idx_np] = False
 
     def _start_poses(self, agents: np.ndarray) -> np.ndarray:
         """``(k, 7)`` poses of the agents' next starts: at ``_next_pos``, level and at rest, as
@@ -569,24 +592,22 @@ class TensorEnv:
             obs = {**obs, "state": self._state_noise(obs["state"], self.generator)}
         return obs
 
-    def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None,
-                      ended: bool = False, own: bool = False, fresh: bool = False) -> dict[str, torch.Tensor]:
+    def _reset_agents(self, mask: torch.Tensor, observation: dict[str, torch.Tensor] | None, ended: bool = False,
+                      own: bool = False, fresh: bool = False, idx: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Reset the agents in ``mask`` to their drawn next start; return ``observation`` with their
         rows replaced by the first view of their new episode (rendered ahead, or now if it is not).
         ``ended``: their episodes ended (they count towards scene swaps; a reset asked for does not).
         ``own``: neither ``observation`` nor the result is handed out whole (:meth:`_merge`).
-        ``fresh``: ``observation``'s images are this step's, not handed out yet (:meth:`_merge`)."""
-        idx = mask.nonzero().squeeze(1)
+        ``fresh``: ``observation``'s images are this step's, not handed out yet (:meth:`_merge`).
+        ``idx``: ``mask``'s agents (``mask.nonzero()``), if the caller has them."""
+        idx = mask.nonzero().squeeze(1) if idx is None else idx
         idx_np = idx.cpu().numpy()
-        chosen = np.zeros(self.num_envs, dtype=bool)
-        chosen[idx_np] = True
-        self._redraw_for_new_scene(chosen)  # a swap armed since their next start was drawn
+        self._redraw_for_new_scene(idx_np)  # a swap armed since their next start was drawn
         if len(self.aggregator.note_resets(idx_np, count=ended)):  # some start this episode in a swapped-in scene
             self.bounds = self._agent_bounds()
-        starts = self.quad.initial_state(self._next_pos.index_select(0, idx), agents=len(idx_np))
-        self.state = self.state.put_rows(idx, starts)
-        self.episode_step = torch.where(mask, 0, self.episode_step)
-        self.episode_return = torch.where(mask, 0.0, self.episode_return)
+        self.state = self.quad.restart(self.state, idx, self._next_pos.index_select(0, idx))
+        self.episode_step = self.episode_step.index_fill(0, idx, 0)
+        self.episode_return = self.episode_return.index_fill(0, idx, 0.0)
         self.reset_agents_hook(idx)
         missing = idx_np[~self._prepared[idx_np]]
         if len(missing):  # first reset, a swapped scene, or a failed worker: render now (a second round trip)
@@ -599,7 +620,7 @@ class TensorEnv:
         else:
             self.frame = self._merge(idx, rows, own, fresh)
         after = self.frame
-        self._draw_next_starts(idx)
+        self._draw_next_starts(idx, idx_np)
         fresh_obs = self._observation()
         if observation is None or before is None:
             return fresh_obs
@@ -720,6 +741,12 @@ class TensorEnv:
     def _check_open(self) -> None:
         if self._closed:
             raise ConfigError("this env is closed; build a new one (make_env) to keep going")
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """``array``, marked read only (shared by every plain step: nothing may write into it)."""
+    array.setflags(write=False)
+    return array
 
 
 def _rows(tensors: dict[str, torch.Tensor], ids: torch.Tensor) -> dict[str, torch.Tensor]:

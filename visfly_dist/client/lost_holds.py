@@ -25,6 +25,7 @@ class LostHolds:
     def __init__(self, num_agents: int, limit_s: float) -> None:
         self.limit_s = float(limit_s)
         self._since = np.full(num_agents, np.nan)
+        self._any = False  # some agent is being held (a served step checks nothing otherwise)
 
     def update(self, stepped: np.ndarray, lost: np.ndarray, now: float) -> np.ndarray:
         """The agents held this step (``(N,)`` bool).
@@ -39,9 +40,11 @@ class LostHolds:
         since[lost & np.isnan(since)] = now
         expired = lost & (now - since >= self.limit_s)
         since[expired] = np.nan
+        self._any = not np.isnan(since).all()
         return lost & ~expired
 
     def served(self, agents: np.ndarray) -> None:
         """``agents`` were all served this step: their holds end (cheap when none was held)."""
-        if not np.isnan(self._since[agents]).all():
+        if self._any and not np.isnan(self._since[agents]).all():
             self._since[agents] = np.nan
+            self._any = not np.isnan(self._since).all()

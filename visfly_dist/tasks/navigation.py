@@ -203,10 +203,10 @@ class NavigationEnv(DroneEnvBase):
 
     def reset_agents_hook(self, idx: torch.Tensor) -> None:
         metas = [self.scene_metadata(i) for i in idx.tolist()]
-        goals = torch.as_tensor(metadata_points(metas, "goal", self.config.goal), dtype=torch.float32, device=self.device)
-        self.goal = self.goal.index_put((idx,), goals)  # a new tensor, never written into: the geometry cache keys on it
+        goals = torch.as_tensor(metadata_points(metas, "goal", self.config.goal).astype(np.float32), device=self.device)
+        self.goal = self.goal.index_copy(0, idx, goals)  # a new tensor, never written into: the geometry cache keys on it
         # a new tensor too: the old one is a view of the last geometry's distance
-        self._prev_distance = self._prev_distance.index_put((idx,), self.goal_distance().detach().index_select(0, idx))
+        self._prev_distance = self._prev_distance.index_copy(0, idx, self.goal_distance().detach().index_select(0, idx))
 
     def goal_distance(self) -> torch.Tensor:
         """``(N,)`` distance from each agent to its goal, m."""
