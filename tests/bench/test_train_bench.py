@@ -24,6 +24,10 @@ def check_row(row: dict, timesteps: int) -> None:
     assert row["env_steps_per_s"] > 0 and row["rollout_env_steps_per_s"] >= row["env_steps_per_s"]
     assert 0 < row["rollout_s"] <= row["loop_s"] and 0 < row["update_s"] <= row["loop_s"]
     assert row["learner_busy"] > 0
+    # the learner's figure is its collecting thread's part and the other threads' (Zenoh's) part
+    assert row["learner_cpu_main_s_per_1k"] > 0 and row["learner_cpu_threads_s_per_1k"] > -1e-3
+    assert row["learner_cpu_main_s_per_1k"] + row["learner_cpu_threads_s_per_1k"] == pytest.approx(
+        row["learner_cpu_s_per_1k"], abs=2e-4)
     # Every rollout step renders on the workers, so they did some work, and no more than all the time.
     assert row["worker_processes"] == row["workers"] and 0 < row["workers_busy"] <= 1.05
 

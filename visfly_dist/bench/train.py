@@ -14,7 +14,9 @@ budget, the seed and a temporary run folder changed; no checkpoints). It reports
   not the benchmark's own sampler of the workers' CPU) during rollout collection per 1,000 rollout
   env steps, *outside the policy network* (the policy's forward passes timed on their thread and
   taken out): the serial part of the learner that caps scaling; ``policy_cpu_s_per_1k`` is the
-  part taken out.
+  part taken out. It is split into ``learner_cpu_main_s_per_1k`` (the trainer's own thread: the env
+  core, the aggregator, the trainer's bookkeeping) and ``learner_cpu_threads_s_per_1k`` (every other
+  thread of the process: Zenoh's network threads, torch's intra-op pool).
 
 Runs follow the host plan (:mod:`visfly_dist.training.host_plan`) unless ``--device``,
 ``--num-envs`` or ``--workers`` say otherwise; ``--algo ppo sb3-ppo`` runs both trainers in one go
@@ -153,6 +155,7 @@ class LoopClock:
     rollouts: int = 0
     updates: int = 0
     rollout_cpu_s: float = 0.0
+    rollout_main_cpu_s: float = 0.0  # the collecting thread's own share of rollout_cpu_s
     policy_cpu_s: float = 0.0
     _depth: int = field(default=0, repr=False)
 
@@ -188,11 +191,12 @@ def watch_trainers(snapshot: Callable[[], CpuSnapshot],
 
     def cpu_of(method: Callable[..., Any], count: bool) -> Callable[..., Any]:
         def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
-            t0, c0 = time.perf_counter(), learner_cpu()
+            t0, c0, m0 = time.perf_counter(), learner_cpu(), time.thread_time()
             try:
                 return method(self, *args, **kwargs)
             finally:
                 clock.rollout_cpu_s += learner_cpu() - c0
+                clock.rollout_main_cpu_s += time.thread_time() - m0
                 if count:
                     clock.rollout_s += time.perf_counter() - t0
                     clock.rollouts += 1
@@ -328,6 +332,8 @@ def _row(task: str, delay_ms: float | None, workers: int | None, result: Any, cl
         "startup_s": round((after.wall - before.wall) - loop_s, 2),
         "success_rate": summary.get("success_rate"),
         "learner_cpu_s_per_1k": round((clock.rollout_cpu_s - clock.policy_cpu_s) * per_1k, 4),
+        "learner_cpu_main_s_per_1k": round((clock.rollout_main_cpu_s - clock.policy_cpu_s) * per_1k, 4),
+        "learner_cpu_threads_s_per_1k": round((clock.rollout_cpu_s - clock.rollout_main_cpu_s) * per_1k, 4),
         "policy_cpu_s_per_1k": round(clock.policy_cpu_s * per_1k, 4),
         "timing": timing if clock.start or "loop_s" in summary else f"{timing}; loop = whole train() call",
     }
