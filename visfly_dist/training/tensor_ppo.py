@@ -466,14 +466,10 @@ class TensorPPO:
         ended = terminated | truncated
         # the env's flags are on the host: what to do is decided there, without waiting on the device
         any_held, any_cut, any_ended = bool(info["held"].any()), bool(truncated.any()), bool(ended.any())
-        reward = reward.detach().to(torch.float32)
-        if self.device.type == "cpu":  # already where the learner is: nothing to stage
-            next_obs, done, held = obs, ended, info["held"]
-        else:
-            moved = self.stage({**{f"obs.{k}": v for k, v in obs.items()}, "reward": reward, "done": ended,
-                                "held": info["held"]})
-            next_obs, reward, done, held = {k: moved[f"obs.{k}"] for k in obs}, moved["reward"], moved["done"], moved["held"]
-        reward = self.norm.reward(reward, done, rows, held if any_held else None)
+        moved = self.stage({**{f"obs.{k}": v for k, v in obs.items()}, "reward": reward.detach().to(torch.float32),
+                            "done": ended, "held": info["held"]})
+        done, held = moved["done"], moved["held"]
+        reward = self.norm.reward(moved["reward"], done, rows, held if any_held else None)
         if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
             cut_rows = truncated.nonzero().squeeze(1)  # on the env's device
             which = cut_rows.to(self.device)
@@ -488,7 +484,7 @@ class TensorPPO:
         r.rewards[t, index] = reward
         r.dones[t, index] = done
         r.held[t, index] = held
-        fresh = self.norm.observe({k: v.detach() for k, v in next_obs.items()})
+        fresh = self.norm.observe({k: moved[f"obs.{k}"] for k in obs})
         if everyone:
             self._obs = fresh
         else:
