@@ -19,6 +19,8 @@ from visfly_dist.errors import ConfigError
 # systemd-logind's RemoveIPC do the same). Workers started afterwards cannot map them, so every
 # request over Zenoh's shared-memory threshold is dropped while small ones (health probes, scene
 # loads) arrive. Runs in a fresh subprocess: it breaks that process's shared memory for good.
+# Local workers' requests go through Zenoh here (local_channel=False): the private channel does
+# not use Zenoh's shared memory, so it cannot lose requests this way.
 SCRIPT = r"""
 import sys
 import time
@@ -32,7 +34,7 @@ from visfly_dist.protocol.shm import remove_own_segments
 
 camera = CameraSpec(name="depth", kind="depth", width=8, height=8)
 poses = np.tile(np.array([[0.0, 0.0, 1.5, 1.0, 0.0, 0.0, 0.0]], np.float32), (200, 1))  # 5.6 kB: shared memory
-first = WorkerPool(PoolConfig(num_local_workers=1, backend="raycast", lease_ms=1000), "lostreq0")
+first = WorkerPool(PoolConfig(num_local_workers=1, backend="raycast", lease_ms=1000, local_channel=False), "lostreq0")
 first.open()
 try:
     (wid,) = first.wait_for(1, 60.0)
@@ -45,7 +47,7 @@ finally:
 assert remove_own_segments(), "this process had no Zenoh shared-memory file to remove"
 
 pool = PoolConfig(num_local_workers=int(sys.argv[1]), backend="raycast", step_timeout_s=2.0, lease_ms=1000,
-                  lost_request_limit=3)
+                  lost_request_limit=3, local_channel=False)
 scenes = SceneSetConfig(sources=("gen:empty",), num_scenes=2, agents_per_scene=200)
 with Aggregator(pool, scenes, (camera,), drone_radius=0.1, search_radius=2.0) as agg:
     pids = agg.local_worker_pids()

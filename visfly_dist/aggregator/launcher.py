@@ -43,8 +43,8 @@ class WorkerLaunchSpec:
     threads: int | None = None
     zenoh_config: str | None = None
 
-    def argv(self, worker_id: str) -> list[str]:
-        """The command line of worker ``worker_id``."""
+    def argv(self, worker_id: str, channel_fd: int | None = None) -> list[str]:
+        """The command line of worker ``worker_id``; ``channel_fd``: its end of a local channel, inherited."""
         argv = [sys.executable, "-m", "visfly_dist.cli", "worker", "--run-id", self.run_id,
                 "--worker-id", worker_id, "--backend", self.backend, "--lease-ms", str(self.lease_ms)]
         for ep in self.connect:
@@ -59,20 +59,22 @@ class WorkerLaunchSpec:
             argv += ["--threads", str(self.threads)]
         if self.zenoh_config is not None:
             argv += ["--zenoh-config", self.zenoh_config]
+        if channel_fd is not None:
+            argv += ["--channel-fd", str(channel_fd)]
         return argv
 
 
 class LocalWorker:
-    """One worker process; its stdout and stderr go to ``log_path``."""
+    """One worker process; its stdout and stderr go to ``log_path``; it inherits ``pass_fds``."""
 
-    def __init__(self, worker_id: str, argv: Sequence[str], log_path: str) -> None:
+    def __init__(self, worker_id: str, argv: Sequence[str], log_path: str, pass_fds: Sequence[int] = ()) -> None:
         self.worker_id = worker_id
         self.log_path = log_path
         self.started_at = time.monotonic()
         with open(log_path, "ab") as log:
             self.process = subprocess.Popen(
                 list(argv), stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                close_fds=True, start_new_session=True,
+                close_fds=True, pass_fds=tuple(pass_fds), start_new_session=True,
             )
 
     @property

@@ -19,6 +19,7 @@ import logging
 import os
 import re
 import signal
+import socket
 import sys
 
 from visfly_dist.errors import ConfigError
@@ -50,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="link lease: a hung worker is declared dead after about this long")
     parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",
                         help="exit when this process is gone (local pools)")
+    parser.add_argument("--channel-fd", type=int, default=None, metavar="FD",
+                        help="an inherited socket on which the trainer that started this worker sends requests "
+                             "besides Zenoh (set by local pools; see visfly_dist.protocol.local_channel)")
     limits = parser.add_argument_group("bounds (a request beyond them gets an error reply)")
     limits.add_argument("--max-scenes", type=int, default=WorkerLimits.max_scenes, metavar="N",
                         help="scenes loaded or loading at once (default %(default)s)")
@@ -101,6 +105,18 @@ def parent_gone(parent_pid: int, original_ppid: int) -> bool:
     return False
 
 
+def inherited_socket(fd: int) -> socket.socket:
+    """The Unix stream socket behind inherited descriptor ``fd``; ConfigError if it is not one."""
+    try:
+        sock = socket.socket(fileno=fd)
+    except OSError as exc:
+        raise ConfigError(f"--channel-fd {fd} is not an open socket: {exc}") from None
+    if sock.family != socket.AF_UNIX or sock.type != socket.SOCK_STREAM:
+        sock.detach()
+        raise ConfigError(f"--channel-fd {fd} must be a Unix stream socket (local pools pass one)")
+    return sock
+
+
 def run(args: argparse.Namespace) -> int:
     roots = args.scene_root or [os.getcwd()]
     missing = [r for r in roots if not os.path.isdir(r)]
@@ -114,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--threads {args.threads} must be >= 1")
     if args.parent_pid is not None and args.parent_pid <= 0:
         raise ConfigError(f"--parent-pid {args.parent_pid} must be a positive process id")
+    channel = None if args.channel_fd is None else inherited_socket(args.channel_fd)
     if "torch" in sys.modules:  # never import it here; only tame it if something else did
         sys.modules["torch"].set_num_threads(1)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
@@ -123,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.scene_worker.service import SceneWorker
 
     worker = SceneWorker(args.run_id, config, roots, backend=args.backend, worker_id=args.worker_id, limits=limits,
-                         threads=args.threads)
+                         threads=args.threads, channel=channel)
     original_ppid = os.getppid()
     should_stop = None
     if args.parent_pid is not None:

@@ -38,6 +38,7 @@ from visfly_dist.protocol import keys
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.codec import decode, encode, error_message
 from visfly_dist.protocol.image_segment import SegmentTarget
+from visfly_dist.protocol.local_channel import ChannelRequest, ChannelServer
 from visfly_dist.protocol.messages import (
     Health,
     LoadScene,
@@ -89,6 +90,8 @@ class SceneWorker:
         limits: what one request and the whole worker may ask for.
         threads: raycast tracing threads; default: the CPUs this process may use, at most 8. Also
             bounds the loads run at once before the first step (:func:`~visfly_dist.scene_worker.loads.parallel_loads`).
+        channel: this worker's end of a local channel from the trainer that started it
+            (:mod:`visfly_dist.protocol.local_channel`); its requests are served beside Zenoh's.
 
     Attributes:
         tracer: the raycast backend's tracer, ``native`` or ``embreex`` (the fallback).
@@ -98,7 +101,7 @@ class SceneWorker:
     def __init__(
         self, run_id: str, session: SessionConfig, scene_roots: Sequence[str | os.PathLike],
         backend: str = "auto", worker_id: str | None = None, limits: WorkerLimits | None = None,
-        threads: int | None = None,
+        threads: int | None = None, channel: socket.socket | None = None,
     ) -> None:
         if backend not in BACKEND_CHOICES:
             raise ConfigError(f"backend={backend!r} must be one of {BACKEND_CHOICES}")
@@ -133,6 +136,8 @@ class SceneWorker:
         self._session: Any = None
         self._queryable: Any = None
         self._token: Any = None
+        self._channel_socket = channel
+        self._channel: ChannelServer | None = None
 
     # -- lifecycle -------------------------------------------------------------------------------
 
@@ -149,6 +154,8 @@ class SceneWorker:
             self._refuse_duplicate_id()
             self._queryable = self._session.declare_queryable(
                 self.rpc_key, zenoh.handlers.Callback(self._inbox.put, indirect=False))
+            if self._channel_socket is not None:
+                self._channel = ChannelServer(self._channel_socket, self._inbox.put)
             self._token = self._session.liveliness().declare_token(self.alive_key)
             self._check_visible()
         except BaseException:
@@ -258,8 +265,13 @@ class SceneWorker:
                 future = item.future
                 if future is not None and future.done() and not future.cancelled() and future.exception() is None:
                     future.result().discard()
+            elif isinstance(item, ChannelRequest):
+                item.respond(False, shutting_down)
             else:
                 self._send(item, False, shutting_down)
+        if self._channel is not None:
+            self._channel.close()
+            self._channel = None
         self._scenes.close()
         self._segments.close()
         if self._session is not None:
@@ -275,8 +287,16 @@ class SceneWorker:
     # -- requests --------------------------------------------------------------------------------
 
     def _answer(self, query: Any) -> None:
+        """Answer a Zenoh query or a :class:`ChannelRequest`."""
+        if isinstance(query, ChannelRequest):
+            self.submit(query.payload, lambda ok, body: self._reply_channel(query, ok, body))
+            return
         payload = query.payload.to_bytes() if query.payload is not None else b""
         self.submit(payload, lambda ok, body: self._reply(query, ok, body))
+
+    def _reply_channel(self, request: ChannelRequest, ok: bool, body: bytes) -> None:
+        with self._timer.time("reply"):
+            request.respond(ok, body)
 
     def _reply(self, query: Any, ok: bool, body: bytes) -> None:
         with self._timer.time("reply"):
