@@ -391,6 +391,10 @@ class WorkerPool:
         if channel is not None:
             channel.close()
 
+    def transport(self, worker_id: str) -> str:
+        """How requests reach ``worker_id``: ``channel`` (a local worker's private channel) or ``zenoh``."""
+        return "channel" if worker_id in self._channels else "zenoh"
+
     def is_local(self, worker_id: str) -> bool:
         return worker_id in self._local
 
