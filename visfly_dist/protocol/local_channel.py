@@ -91,6 +91,17 @@ def _read_frame(sock: socket.socket) -> tuple[int, int, bytes] | None:
     return None if payload is None else (request_id, flags, payload)
 
 
+def _close_end(sock: socket.socket, reader: threading.Thread) -> None:
+    """Shut ``sock`` down (which ends ``reader``'s wait), wait for the reader, close the socket."""
+    try:
+        sock.shutdown(socket.SHUT_RDWR)
+    except OSError:
+        pass
+    if reader is not threading.current_thread():
+        reader.join(timeout=5.0)
+    sock.close()
+
+
 class ReplyWaiter(Protocol):
     """What waits for a reply: finished once, with ``(ok, body)``, or ``None`` when the worker is gone."""
 
@@ -135,13 +146,7 @@ class ChannelClient:
     def close(self) -> None:
         """Fail every request in flight and stop the reader. Idempotent."""
         self._closed = True
-        try:
-            self._sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        if self._reader is not threading.current_thread():
-            self._reader.join(timeout=5.0)
-        self._sock.close()
+        _close_end(self._sock, self._reader)
 
     def _finish(self, request_id: int, raw: tuple[bool, bytes] | None) -> None:
         entry = self._waiting.pop(request_id, None)
@@ -205,13 +210,7 @@ class ChannelServer:
             log.warning("could not send a reply on the local channel: %s", exc)
 
     def close(self) -> None:
-        try:
-            self._sock.shutdown(socket.SHUT_RDWR)
-        except OSError:
-            pass
-        if self._reader is not threading.current_thread():
-            self._reader.join(timeout=5.0)
-        self._sock.close()
+        _close_end(self._sock, self._reader)
 
     def _read_requests(self) -> None:
         try:
