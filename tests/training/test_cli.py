@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -30,6 +31,8 @@ def trained_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
                    "--out", str(out), *TINY)
     assert proc.returncode == 0, proc.stderr
     assert '"task": "hover"' in proc.stdout  # the full config is printed
+    starting = next(line for line in proc.stdout.splitlines() if line.startswith("starting the env: "))
+    assert "local worker(s)" in starting and re.search(r"^env ready in \d+\.\d s$", proc.stdout, re.M), proc.stdout
     return out
 
 

@@ -29,6 +29,7 @@ The same pieces serve your own scripts: ``build_env(cfg)`` gives the wrapped Vec
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
@@ -141,7 +142,13 @@ def train(cfg: TrainConfig) -> TrainResult:
     assert cfg.out is not None and cfg.timesteps is not None  # resolved() and validate() set them
     run_dir, timesteps = Path(cfg.out), cfg.timesteps
     tensor = cfg.algo == "ppo"
+    if cfg.progress:
+        print(f"starting the env: {cfg.num_envs} agents, their scenes loaded by {cfg.workers} local worker(s)"
+              if cfg.workers else f"starting the env: {cfg.num_envs} agents, scenes loaded by remote workers", flush=True)
+    started = time.monotonic()
     env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)) if tensor else build_env(cfg)
+    if cfg.progress:
+        print(f"env ready in {time.monotonic() - started:.1f} s", flush=True)
     interrupted = False
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
