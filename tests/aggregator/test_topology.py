@@ -53,6 +53,8 @@ def test_runs_on_one_router_stay_apart_without_shared_memory(router, scene_root)
         assert b.workers == ["local-0", "remote-b"]
         assert sorted(b.assignment().values()) == ["local-0", "remote-b"]
         assert {h["pid"] for h in a.health()} == {a.local_worker_pids()["local-0"]}
+        # one step's requests go to both: the local worker's on its channel, the remote one's through Zenoh
+        assert {h["worker_id"]: h["transport"] for h in b.health()} == {"local-0": "channel", "remote-b": "zenoh"}
         for agg in (a, b):
             poses = spawn_poses(agg)
             obs = agg.observe(poses)

@@ -248,7 +248,8 @@ class Aggregator:
         return bool(self._background)
 
     def health(self) -> list[dict[str, Any]]:
-        """Each live worker's health reply, plus ``local`` and the ``slots`` it serves."""
+        """Each live worker's health reply, plus ``local``, ``transport`` (``channel``: a local worker's
+        private channel; ``zenoh``) and the ``slots`` it serves."""
         self._require_started()
         live = self._pool.live_workers()
         replies = self._pool.call([(w, Health().to_message()) for w in live], self.pool_config.step_timeout_s)
@@ -257,6 +258,7 @@ class Aggregator:
             entry = {k: v for k, v in (reply.message or {}).items() if k not in ("version", "type")}
             entry["worker_id"] = reply.worker_id
             entry["local"] = self._pool.is_local(reply.worker_id)
+            entry["transport"] = self._pool.transport(reply.worker_id)
             entry["slots"] = [s.index for s in self.table.slots if s.worker == reply.worker_id]
             if reply.failure is not None or reply.error is not None:
                 entry["error"] = reply.failure or str(reply.error)
