@@ -5,11 +5,14 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 
 import pytest
 
+from tests.helpers import REPO
 from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.pool import WorkerPool
 from visfly_dist.errors import ConfigError
@@ -180,3 +183,27 @@ def test_a_request_to_a_worker_killed_while_it_holds_it_fails_at_once_on_the_cha
         assert reply.message is None and "no reply" in reply.failure, reply
     finally:
         pool.close()
+
+
+def test_a_request_to_a_gone_worker_fails_without_sigpipe_even_where_it_is_not_ignored():
+    script = r"""
+import signal, time
+from visfly_dist.protocol.local_channel import ChannelClient, socket_pair
+signal.signal(signal.SIGPIPE, signal.SIG_DFL)  # what a CLI that pipes its output may restore
+ours, theirs = socket_pair()
+client = ChannelClient(ours, "gone")
+theirs.close()
+got = []
+class Waiter:
+    def finish(self, raw):
+        got.append(raw)
+for _ in range(3):
+    client.send(b"x" * 100_000, Waiter(), timeout_s=5.0)
+deadline = time.monotonic() + 5.0
+while len(got) < 3 and time.monotonic() < deadline:
+    time.sleep(0.01)
+print(got)
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))})
+    assert done.returncode == 0 and done.stdout.strip() == "[None, None, None]", (done.returncode, done.stdout, done.stderr)

@@ -49,7 +49,7 @@ def _send_frame(sock: socket.socket, request_id: int, flags: int, payload: bytes
     """Write one frame (one ``sendmsg`` for all but very large payloads). Raises OSError when the peer is gone."""
     parts = [memoryview(HEADER.pack(request_id, len(payload), flags)), memoryview(payload)]
     while parts:
-        sent = sock.sendmsg(parts)
+        sent = sock.sendmsg(parts, [], socket.MSG_NOSIGNAL)  # EPIPE, not SIGPIPE, should a caller restore its default
         while parts and sent >= len(parts[0]):
             sent -= len(parts[0])
             parts.pop(0)
