@@ -160,6 +160,11 @@ def test_a_local_worker_answers_over_either_transport(local_channel):
         assert reply.message is not None and reply.message["version"] == PROTOCOL_VERSION, reply
         assert reply.message["worker_id"] == wid and reply.message["pid"] == pool.local_pids()[wid]
         assert pool.transport(wid) == ("channel" if local_channel else "zenoh")
+        # a bad request gets the same error reply whatever carried it, and the worker serves on
+        (bad,) = pool.call([(wid, {"version": PROTOCOL_VERSION, "type": "no-such-request"})], timeout_s=10.0)
+        assert bad.error is not None and bad.error.error_type == "ProtocolError", bad
+        (again,) = pool.call([(wid, Health().to_message())], timeout_s=10.0)
+        assert again.message is not None and again.message["pid"] == pool.local_pids()[wid], again
     finally:
         pool.close()
 
