@@ -84,7 +84,7 @@ def test_small_and_large_agent_sets_follow_one_rule_and_carry_their_wire_arrays(
     table.arm(4, move, np.zeros((2, 3)), {})
     table.take_over(np.array([13]))
     rng = np.random.default_rng(0)
-    for size in (1, 3, 16, 17, 36):  # both sides of SMALL_PLAN, in and out of order
+    for size in (1, 3, 16, 17, 36):  # a few agents (a step's spawn rows) and many, in and out of order
         agents = rng.permutation(36)[:size] if size % 2 else np.sort(rng.permutation(36)[:size])
         for next_episode in (False, True):
             plan = plan_entries(table, agents, next_episode)

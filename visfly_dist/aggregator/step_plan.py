@@ -19,8 +19,6 @@ import numpy as np
 from visfly_dist.aggregator.inputs import increasing
 from visfly_dist.aggregator.slots import SlotTable
 
-SMALL_PLAN = 16
-"""Agent sets up to this size are planned with lists (a step's few spawn rows); larger ones with NumPy."""
 MAX_CACHED_PLANS = 8
 """Step plans kept per slot-table revision: one per agent set stepped (all agents, or each group)."""
 
@@ -54,19 +52,12 @@ def plan_entries(table: SlotTable, agents: np.ndarray, next_episode: bool = Fals
     n = len(agents)
     if n == 0:
         return {}
-    if n <= SMALL_PLAN:  # a few agents (a step's spawn rows): lists, fewer NumPy calls
-        slot_list = table.agent_scene[agents].tolist()
-        inc = (table.in_incoming[agents] | table.armed[slot_list] if next_episode else table.in_incoming[agents]).tolist()
-        order = sorted(range(n), key=slot_list.__getitem__)  # stable, as argsort's "stable"
-        codes = [slot_list[r] * 2 + inc[r] for r in order]
-        cuts = [i for i in range(1, n) if codes[i] != codes[i - 1]]
-    else:
-        slot_of = table.agent_scene[agents]
-        order_array = np.argsort(slot_of, kind="stable")
-        incoming = table.in_incoming[agents] | table.armed[slot_of] if next_episode else table.in_incoming[agents]
-        code = (slot_of * 2 + incoming)[order_array]
-        cuts = (np.flatnonzero(code[1:] != code[:-1]) + 1).tolist()  # plain lists: a few entries cost no NumPy call each
-        codes, order = code.tolist(), order_array.tolist()
+    slot_of = table.agent_scene[agents]
+    order = np.argsort(slot_of, kind="stable")
+    incoming = table.in_incoming[agents] | table.armed[slot_of] if next_episode else table.in_incoming[agents]
+    code = (slot_of * 2 + incoming)[order]
+    cuts = (np.flatnonzero(code[1:] != code[:-1]) + 1).tolist()  # plain lists: a few entries cost no NumPy call each
+    codes, firsts = code.tolist(), order.tolist()
     out: dict[str, tuple[list[str], list[int], list[int], list[int], list[int]]] = {}
     for start, end in zip([0, *cuts], [*cuts, n]):
         slot, new = divmod(codes[start], 2)
@@ -77,9 +68,9 @@ def plan_entries(table: SlotTable, agents: np.ndarray, next_episode: bool = Fals
         keys, cnts, rows, served, first = out.setdefault(worker, ([], [], [], [], []))
         keys.append(key)
         cnts.append(end - start)
-        rows.extend(order[start:end])
+        rows.extend(firsts[start:end])
         served.append(slot)
-        first.append(order[start])
+        first.append(firsts[start])
     return {w: WorkerEntries(k, c, np.array(r, np.int64), sl, f, np.array(c, np.int32), np.array(f, np.int64))
             for w, (k, c, r, sl, f) in out.items()}
 

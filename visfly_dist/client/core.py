@@ -358,12 +358,8 @@ class TensorEnv:
         spawn_agents = np.flatnonzero(~self._prepared if everyone else ~self._prepared & members)
         poses = after.pose().detach().cpu().numpy()
         # groups stepped in turn share one clock: a group's k-th step happens at k * ctrl_dt
-        if everyone:
-            self._steps_sent += 1
-            sim_time = int(self._steps_sent.max()) * self.config.ctrl_dt
-        else:
-            self._steps_sent[agents] += 1
-            sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
+        self._steps_sent[agents] += 1
+        sim_time = int(self._steps_sent[agents].max()) * self.config.ctrl_dt if len(agents) else self.sim_time
         self.sim_time = sim_time
         ticket = self.aggregator.submit(poses if len(agents) == self.num_envs else poses[agents], agents=agents,
                                         spawn_poses=self._start_poses(spawn_agents), spawn_agents=spawn_agents,

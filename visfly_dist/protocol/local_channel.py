@@ -39,9 +39,9 @@ EXPIRY_POLL_S = 0.25
 
 
 def socket_pair() -> tuple[socket.socket, socket.socket]:
-    """The trainer's end and the worker's end; the worker's is inheritable (``pass_fds``)."""
+    """The trainer's end and the worker's end (pass it to the worker with ``pass_fds``, which makes it
+    inheritable in that child only)."""
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-    theirs.set_inheritable(True)
     return ours, theirs
 
 
