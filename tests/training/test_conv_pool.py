@@ -8,6 +8,8 @@ import torch
 import torch.nn.functional as F
 from gymnasium import spaces
 from torch import nn
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_flatten
 
 from visfly_dist.training.conv_pool import conv_maxpool2, phase_form_applies, phase_max, phase_weight, space_to_depth
 from visfly_dist.training.native_kernels import load_kernels
@@ -140,3 +142,27 @@ def test_space_to_depth_without_grad_is_pixel_unshuffle_channels_last(channels: 
     with torch.no_grad():
         out = space_to_depth(x)
     assert torch.equal(out, reference) and out.stride() == reference.stride()
+
+
+def test_the_phase_kernel_is_built_on_its_weights_device() -> None:
+    """No operation of :func:`phase_weight` takes a tensor from another device than the weight's.
+
+    It runs inside CUDA graph captures (:mod:`visfly_dist.training.graphed_policy`), where a copy of a
+    CPU tensor to the GPU is an error; the meta device stands in for the GPU here.
+    """
+    class DevicesPerOp(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.mixed: list[str] = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # type: ignore[no-untyped-def]
+            flat, _ = tree_flatten((args, kwargs or {}))
+            if {t.device.type for t in flat if isinstance(t, torch.Tensor)} - {"meta"}:
+                self.mixed.append(str(func))
+            return func(*args, **(kwargs or {}))
+
+    weight = torch.empty(6, 1, 5, 5, device="meta")
+    with DevicesPerOp() as mode:
+        phased = phase_weight(weight)
+    assert phased.device.type == "meta" and phased.shape == (24, 4, 3, 3)
+    assert mode.mixed == []

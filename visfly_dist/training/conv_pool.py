@@ -50,8 +50,8 @@ def phase_weight(weight: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"phase_weight needs a square kernel, got {k}x{k2}")
     size = (k + 2) // 2
     padded = F.pad(weight, (1, 2 * size - k, 1, 2 * size - k))  # index u + 1 for u in [-1, 2 size - 1]
-    m = torch.arange(size)
-    two = torch.arange(2)
+    m = torch.arange(size, device=weight.device)  # on the weight's device: a CUDA graph capture copies nothing
+    two = torch.arange(2, device=weight.device)
     # idx[a, p, m] = 2 m + p - a + 1
     idx = 2 * m[None, None, :] + two[None, :, None] - two[:, None, None] + 1
     rows = idx[:, None, :, None, :, None].expand(2, 2, 2, 2, size, size)  # (a, b, p, q, m, n) -> u index
