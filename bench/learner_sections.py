@@ -19,6 +19,7 @@ import contextlib
 import io
 import json
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -57,19 +58,20 @@ SECTIONS: list[tuple[Any, str, str]] = [
 
 
 class Sections:
-    """Wall and thread-CPU seconds per section, counted only while ``on`` and on one thread."""
+    """Wall and thread-CPU seconds per section, counted only while ``on`` and on the thread that made it."""
 
     def __init__(self) -> None:
         self.wall: collections.Counter[str] = collections.Counter()
         self.cpu: collections.Counter[str] = collections.Counter()
         self.calls: collections.Counter[str] = collections.Counter()
         self.on = False
+        self.thread = threading.get_ident()
 
     def wrap(self, owner: Any, name: str, label: str) -> None:
         method: Callable[..., Any] = getattr(owner, name)
 
         def timed(*args: Any, **kwargs: Any) -> Any:
-            if not self.on:
+            if not self.on or threading.get_ident() != self.thread:  # the film thread steps an env too
                 return method(*args, **kwargs)
             wall, cpu = time.perf_counter(), time.thread_time()
             try:
