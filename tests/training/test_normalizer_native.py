@@ -99,9 +99,9 @@ def test_native_rewards_match_torch_over_many_steps(num_envs: int) -> None:
 
 
 @needs_kernels
-def test_groups_and_held_agents_keep_to_torch_and_the_statistics_stay_in_step() -> None:
-    """A group's rows or held agents are torch's: steps of all agents before and after them still
-    give torch's statistics and values."""
+def test_groups_and_held_agents_match_torch_and_the_statistics_stay_in_step() -> None:
+    """A group's rows (the kernels, on the group's returns) and held agents (torch's operations) give
+    torch's values, and steps of all agents before and after them still give torch's statistics."""
     native, reference = _pair(SPACE, 6)
     g = torch.Generator().manual_seed(5)
     group = torch.tensor([1, 4, 5])

@@ -10,16 +10,19 @@ on :meth:`~visfly_dist.client.env_base.DroneEnvBase.step_tensor`:
    SB3 ``.zip`` files that ``eval`` and ``export`` load as before) samples actions for the current,
    already normalised observation on the learner's device (on a GPU, replayed from a CUDA graph:
    :mod:`visfly_dist.training.graphed_policy`).
-2. **Step.** ``step_tensor`` advances the agents; its observation tensors (the images a view of the
-   workers' shared-memory segment), rewards and end flags cross to the device in one copy through
-   pinned memory (:mod:`visfly_dist.training.device_stage`), into the preallocated rollout tensors
+2. **Step.** ``step_tensor`` advances the agents and hands over its observation tensors (the images a
+   view of the workers' shared-memory segment), rewards and end flags on the host.
+3. **Normalise where they are, then one copy.** Vector entries (``state``, ``target``, ...) and
+   rewards are scaled by running statistics kept beside the env (VecNormalize's formulas: clip 10,
+   epsilon 1e-8, returns discounted by ``gamma``), one native call each
+   (:mod:`~visfly_dist.training.native_kernels`): on a GPU the same arithmetic is some forty kernel
+   launches a step for a few hundred numbers. Images are never copied for it. The normalised step
+   then crosses to the device in one copy through pinned memory
+   (:mod:`visfly_dist.training.device_stage`), into the preallocated rollout tensors
    (``observations[t]``, ``actions[t]``, ``log_probs[t]``, ``values[t]``, ``rewards[t]``, ``dones[t]``).
    A rollout of every agent at once keeps each step's images as the env handed them out (on a CPU,
    views of the workers' segments, which the env keeps for it: ``hold_observations``), not copied;
-   a minibatch gathers its rows from them once.
-3. **Normalise on the device.** Vector entries (``state``, ``target``, ...) and rewards are scaled
-   by running statistics kept as tensors (VecNormalize's formulas: clip 10, epsilon 1e-8, returns
-   discounted by ``gamma``); images are never copied for it. A truncated episode (time limit,
+   a minibatch gathers its rows from them once. A truncated episode (time limit,
    scene swap, a worker away too long) is bootstrapped with the value of its terminal observation, as
    SB3 does. A step in which an agent was *held* (its worker failed and is being replaced: the env
    undid its step) is no transition: it is left out of the return statistics, GAE passes over it,
@@ -107,8 +110,8 @@ class _Moments:
 
 
 class Normalizer:
-    """Observation and reward normalisation on the device, with VecNormalize's formulas and
-    statistics (saved in the same ``*.norm.npz``, so ``eval`` rebuilds a ``VecNormalize`` from it).
+    """Observation and reward normalisation with VecNormalize's formulas and statistics (saved in the
+    same ``*.norm.npz``, so ``eval`` rebuilds a ``VecNormalize`` from it), on the env's device.
 
     Args:
         space: the env's observation space; its float vector entries are normalised.
@@ -116,7 +119,7 @@ class Normalizer:
         gamma: discount of the returns whose spread scales the rewards.
         device: where the statistics live.
         enabled: ``False`` passes observations and rewards through unchanged.
-        native: on a CPU, a step's float32 observations and (all agents', none held) rewards are
+        native: on a CPU, a step's float32 observations and (none held) rewards are
             normalised in one call of the native kernels each (:mod:`~visfly_dist.training.native_kernels`,
             where built and not switched off) instead of about twenty torch operations: the same
             statistics up to the rounding of the batch moments, the same scaled values. ``False``:
@@ -193,8 +196,8 @@ class Normalizer:
         ``done`` and stay as they are where ``held`` (a step that did not happen)."""
         if not self.enabled:
             return reward
-        if (lib := self._kernels) is not None and rows is None and held is None:
-            fast = self._reward_native(lib, reward, done)
+        if (lib := self._kernels) is not None and held is None:
+            fast = self._reward_native(lib, reward, done, rows)
             if fast is not None:
                 return fast
         before = self.returns if rows is None else self.returns[rows]
@@ -212,23 +215,28 @@ class Normalizer:
             self.returns[rows] = returns
         return scaled
 
-    def _reward_native(self, lib: ctypes.CDLL, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor | None:
-        """:meth:`reward` of every agent, none held, in one kernel call, or ``None`` where it does not
-        take them (not float32 rewards and bool ends on the CPU, one per agent)."""
+    def _reward_native(self, lib: ctypes.CDLL, reward: torch.Tensor, done: torch.Tensor,
+                       rows: torch.Tensor | None) -> torch.Tensor | None:
+        """:meth:`reward` of agents ``rows`` (default all), none held, in one kernel call, or ``None``
+        where it does not take them (not float32 rewards and bool ends on the CPU, one per agent)."""
+        before = self.returns if rows is None else self.returns[rows]
         n = reward.shape[0]
         if (n == 0 or reward.dtype != torch.float32 or done.dtype != torch.bool or not reward.is_cpu or not done.is_cpu
-                or reward.shape != self.returns.shape or done.shape != self.returns.shape):
+                or reward.shape != before.shape or done.shape != before.shape):
             return None
         reward, done = reward.contiguous(), done.contiguous()
         m = self.ret_moments
-        returns, mean, var = torch.empty_like(self.returns), torch.empty_like(m.mean), torch.empty_like(m.var)
+        returns, mean, var = torch.empty_like(before), torch.empty_like(m.mean), torch.empty_like(m.var)
         scaled = torch.empty(n, dtype=torch.float32)
         lib.vf_normalize_reward_f32(
-            reward.data_ptr(), done.data_ptr(), self.returns.data_ptr(), returns.data_ptr(), n, self.gamma,
+            reward.data_ptr(), done.data_ptr(), before.data_ptr(), returns.data_ptr(), n, self.gamma,
             m.mean.data_ptr(), m.var.data_ptr(), mean.data_ptr(), var.data_ptr(), m.count, EPSILON, CLIP_REWARD,
             scaled.data_ptr())
         m.mean, m.var, m.count = mean, var, m.count + n
-        self.returns = returns
+        if rows is None:
+            self.returns = returns
+        else:
+            self.returns[rows] = returns
         return scaled
 
     def save(self, path: Path) -> None:
@@ -350,7 +358,9 @@ class TensorPPO:
         self.model, self.env, self.policy = model, env, model.policy
         self.device = model.device
         self.n_steps, self.num_envs = model.n_steps, env.num_envs
-        self.norm = Normalizer(env.observation_space, env.num_envs, model.gamma, self.device, enabled=normalize)
+        # on the env's side (the host): a step's vectors and rewards are small, and there one native call
+        # each normalises them where a GPU would take some forty kernel launches (measured 1.3 ms a step)
+        self.norm = Normalizer(env.observation_space, env.num_envs, model.gamma, env.device, enabled=normalize)
         self.groups = self._groups(overlap)
         self.rollout = Rollout(env.observation_space, self.n_steps, env.num_envs, self.device,
                                kept_images=len(self.groups) == 1)
@@ -410,7 +420,7 @@ class TensorPPO:
     def reset(self) -> None:
         """Reset the env and take in its first observation (``learn`` does this before its first rollout)."""
         first = {k: torch.as_tensor(v) for k, v in self.env.reset().items()}
-        self._obs = self.norm.observe(self._to_device(first))
+        self._obs = self._to_device(self.norm.observe(first))
 
     def collect(self) -> None:
         """One rollout of ``n_steps`` per agent into :attr:`rollout` (GAE included)."""
@@ -462,35 +472,38 @@ class TensorPPO:
         """Rewards, ends and next observations of group ``g`` from its step ``t``."""
         obs, reward, terminated, truncated, info = result
         everyone = len(self.groups) == 1
-        rows = None if everyone else self.group_rows[g]
-        ended = terminated | truncated
+        ended, held = terminated | truncated, info["held"]
         # the env's flags are on the host: what to do is decided there, without waiting on the device
-        any_held, any_cut, any_ended = bool(info["held"].any()), bool(truncated.any()), bool(ended.any())
-        moved = self.stage({**{f"obs.{k}": v for k, v in obs.items()}, "reward": reward.detach().to(torch.float32),
-                            "done": ended, "held": info["held"]})
-        done, held = moved["done"], moved["held"]
-        reward = self.norm.reward(moved["reward"], done, rows, held if any_held else None)
+        any_held, any_cut, any_ended = bool(held.any()), bool(truncated.any()), bool(ended.any())
+        # normalised where the env made them (one native call each on the host), then one copy to the device
+        reward = self.norm.reward(reward.detach().to(torch.float32), ended, None if everyone else self.groups[g],
+                                  held if any_held else None)
         if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
             cut_rows = truncated.nonzero().squeeze(1)  # on the env's device
-            which = cut_rows.to(self.device)
             # a plain step's terminal observation holds the ended rows only, a group's every row
             cut = truncated[ended] if everyone else cut_rows
-            terminal = {k: v[cut.to(v.device)] for k, v in info["terminal_observation"].items()}
-            terminal = self.norm.observe(self._to_device(terminal), update=False)
+            terminal = self.norm.observe({k: v[cut.to(v.device)] for k, v in info["terminal_observation"].items()},
+                                         update=False)
+        normalised = self.norm.observe(obs)
+        moved = self.stage({**{f"obs.{k}": v for k, v in normalised.items()}, "reward": reward, "done": ended,
+                            "held": held})
+        reward, done, held = moved["reward"], moved["done"], moved["held"]
+        if any_cut:
             reward = reward.clone()
-            reward[which] += self.model.gamma * self.policy.predict_values(terminal).flatten()
+            reward[cut_rows.to(self.device)] += self.model.gamma * self.policy.predict_values(
+                self._to_device(terminal)).flatten()
         r = self.rollout
-        index = slice(None) if everyone else rows
+        index = slice(None) if everyone else self.group_rows[g]
         r.rewards[t, index] = reward
         r.dones[t, index] = done
         r.held[t, index] = held
-        fresh = self.norm.observe({k: moved[f"obs.{k}"] for k in obs})
+        fresh = {k: moved[f"obs.{k}"] for k in obs}
         if everyone:
             self._obs = fresh
         else:
             current = self._observation()
             for k, v in fresh.items():
-                current[k][rows] = v
+                current[k][index] = v
         if any_ended and self._on_episode is not None:  # a collect outside learn() records no episodes
             self._record_episodes(ended, truncated, info)
 
