@@ -43,7 +43,9 @@ step_train() {
 step_gputests() {  # the tests that only a GPU runs (CUDA graphs, pinned copies)
   echo "== gputests: pytest of the CUDA tests" | tee -a "$OUT/status.txt"
   timeout -k 10 120 "$PY" -m pytest -q -p no:cacheprovider tests/training/test_graphed_policy.py \
-      tests/training/test_device_stage.py > "$WORK/gputests.log" 2>&1
+      tests/training/test_device_stage.py tests/training/test_conv_pool.py \
+      "tests/training/test_tensor_ppo.py::test_statistics_stay_beside_the_env_and_the_rollout_on_the_learners_device" \
+      > "$WORK/gputests.log" 2>&1
   echo "   exit $?" | tee -a "$OUT/status.txt"
   tail -n 30 "$WORK/gputests.log"
   pack

@@ -10,6 +10,7 @@ import torch
 from gymnasium import spaces
 from stable_baselines3 import PPO
 from stable_baselines3.common.buffers import RolloutBuffer
+from stable_baselines3.common.logger import configure
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 
 from visfly_dist.training.checkpoints import load_normalization, norm_path
@@ -243,6 +244,43 @@ def test_episodes_cut_by_the_time_limit_are_bootstrapped_from_their_own_terminal
             cut_steps += bool(truncated.any() and not truncated[0])
             torch.testing.assert_close(trainer.rollout.rewards[t], expected.to(trainer.rollout.rewards.dtype))
         assert cut_steps >= 1  # agents 1-3 were cut while agent 0 flew on
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a GPU torch can use"))])
+def test_statistics_stay_beside_the_env_and_the_rollout_on_the_learners_device(device: str) -> None:
+    """Rewards and vector observations are normalised on the env's device (the host) before the
+    step's one copy; the rollout, cut episodes' bootstraps included, lives on the learner's device
+    and holds the scaled rewards the host computed (plus the bootstrap where an episode was cut)."""
+    env = make_counter(seed=1)
+    try:
+        model = PPO("MultiInputPolicy", env, n_steps=12, batch_size=16, gamma=0.9, device=device, seed=0)
+        model.set_logger(configure(None, []))
+        trainer = TensorPPO(model, env, normalize=True)
+        steps, step = [], env.step_tensor
+
+        def recorded(actions, hold=None, terminal="all"):
+            result = step(actions, hold, terminal)
+            _, reward, terminated, truncated, _ = result
+            steps.append((reward.clone(), terminated | truncated, truncated.clone()))
+            return result
+
+        env.step_tensor = recorded
+        trainer.reset()
+        trainer.collect()
+        trainer.update()
+        assert trainer.norm.returns.device.type == "cpu" and trainer.norm.ret_moments.mean.device.type == "cpu"
+        assert trainer.rollout.rewards.device.type == device and trainer.rollout.observations["state"].device.type == device
+        reference = Normalizer(env.observation_space, env.num_envs, 0.9, CPU, native=False)
+        cut = 0
+        for t, (reward, ended, truncated) in enumerate(steps):
+            expected = reference.reward(reward.to(torch.float32), ended)
+            kept = ~truncated  # cut rows add gamma * V(terminal) on the device
+            cut += int(truncated.sum())
+            torch.testing.assert_close(trainer.rollout.rewards[t].cpu()[kept], expected[kept])
+        assert cut >= 1 and trainer.norm.ret_moments.count >= 12 * env.num_envs
     finally:
         env.close()
 
