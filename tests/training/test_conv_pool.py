@@ -145,11 +145,8 @@ def test_space_to_depth_without_grad_is_pixel_unshuffle_channels_last(channels: 
 
 
 def test_the_phase_kernel_is_built_on_its_weights_device() -> None:
-    """No operation of :func:`phase_weight` takes a tensor from another device than the weight's.
-
-    It runs inside CUDA graph captures (:mod:`visfly_dist.training.graphed_policy`), where a copy of a
-    CPU tensor to the GPU is an error; the meta device stands in for the GPU here.
-    """
+    """No operation of :func:`phase_weight` takes a tensor from another device than the weight's
+    (index tensors made on the CPU made CUDA graph captures fail when a GPU ran the phase form)."""
     class DevicesPerOp(TorchDispatchMode):
         def __init__(self) -> None:
             super().__init__()
@@ -166,3 +163,17 @@ def test_the_phase_kernel_is_built_on_its_weights_device() -> None:
         phased = phase_weight(weight)
     assert phased.device.type == "meta" and phased.shape == (24, 4, 3, 3)
     assert mode.mixed == []
+
+
+def test_only_a_cpu_runs_the_phase_form(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Off the CPU (a GPU; the meta device here) the plain convolution and pool run: the phase form
+    only adds kernel launches there."""
+    def refuse(conv: nn.Conv2d) -> None:
+        raise AssertionError("the phase form ran off the CPU")
+
+    monkeypatch.setattr("visfly_dist.training.conv_pool.phase_params", refuse)
+    conv = nn.Conv2d(1, 6, 5).to("meta")
+    out = conv_maxpool2(torch.empty(4, 1, 64, 64, device="meta"), conv)
+    assert out.shape == (4, 6, 30, 30) and out.device.type == "meta"
+    with pytest.raises(AssertionError, match="phase form"):
+        conv_maxpool2(torch.rand(4, 1, 64, 64), nn.Conv2d(1, 6, 5))  # the CPU does

@@ -70,8 +70,8 @@ def test_graph_matches_the_eager_policy_and_follows_its_weights() -> None:
 
 @cuda
 def test_graph_follows_every_parameter_updated_in_place() -> None:
-    """The image trunk's phase kernel is kept on the Python side between eager calls; a graph must
-    not keep the one of its capture (that froze the first convolution of the rollout's policy)."""
+    """Every parameter moved in place is seen by the next replay (a kernel kept on the Python side
+    once froze the first convolution of the rollout's policy at its capture)."""
     policy, obs = _policy("cuda"), _obs(64, "cuda")
     forward = GraphedForward(policy, log=pytest.fail)
     g = torch.Generator(device="cuda").manual_seed(7)

@@ -50,7 +50,7 @@ def phase_weight(weight: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"phase_weight needs a square kernel, got {k}x{k2}")
     size = (k + 2) // 2
     padded = F.pad(weight, (1, 2 * size - k, 1, 2 * size - k))  # index u + 1 for u in [-1, 2 size - 1]
-    m = torch.arange(size, device=weight.device)  # on the weight's device: a CUDA graph capture copies nothing
+    m = torch.arange(size, device=weight.device)  # on the weight's device: no host tensor mixed in
     two = torch.arange(2, device=weight.device)
     # idx[a, p, m] = 2 m + p - a + 1
     idx = 2 * m[None, None, :] + two[None, :, None] - two[:, None, None] + 1
@@ -68,12 +68,16 @@ def phase_form_applies(height: int, width: int, kernel: int) -> bool:
 def conv_maxpool2(x: torch.Tensor, conv: torch.nn.Conv2d) -> torch.Tensor:
     """``max_pool2d(conv(x), 2)`` for a stride-1, unpadded, undilated, ungrouped ``conv``.
 
-    Uses the phase form (returning a channels-last tensor) for at most ``PHASE_MAX_IN_CHANNELS``
-    input channels when :func:`phase_form_applies`, else the plain convolution and pool.
+    Uses the phase form (returning a channels-last tensor) on a CPU, for at most
+    ``PHASE_MAX_IN_CHANNELS`` input channels when :func:`phase_form_applies`; else the plain
+    convolution and pool. On a GPU the plain pair is cuDNN's and the phase form only adds
+    operations, each a kernel launch: counted on the policy of the navigation task, a minibatch's
+    forward and backward pass is 338 operations in the phase form against 268 plain, a forward pass
+    without gradients 128 against 72.
     """
     kernel, other = conv.kernel_size
     simple = conv.stride == (1, 1) and conv.padding == (0, 0) and conv.dilation == (1, 1) and conv.groups == 1
-    if (conv.in_channels > PHASE_MAX_IN_CHANNELS or not simple or kernel != other
+    if (not x.is_cpu or conv.in_channels > PHASE_MAX_IN_CHANNELS or not simple or kernel != other
             or not phase_form_applies(x.shape[2], x.shape[3], kernel)):
         return F.max_pool2d(conv(x), 2)
     batch, out_ch = x.shape[0], conv.out_channels
@@ -113,12 +117,12 @@ def phase_params(conv: torch.nn.Conv2d) -> tuple[torch.Tensor, torch.Tensor | No
     With gradients they are recomputed, so that autograd reaches ``conv``'s parameters. Without
     (rollout inference) they are kept per convolution and rebuilt only when a parameter changed:
     the key is each parameter's identity, storage and in-place version counter, which optimizer
-    steps and ``load_state_dict`` advance. That saves two small kernels per forward pass. While a
-    CUDA graph is captured they are recomputed too: a replay runs no Python, so a kept kernel would
-    stay the one of the capture while the optimizer moves the weights.
+    steps and ``load_state_dict`` advance. That saves two small kernels per forward pass. (Only a
+    CPU runs the phase form: nothing here is captured in a CUDA graph, whose replay would keep
+    the kernel of its capture.)
     """
     params = [p for p in (conv.weight, conv.bias) if p is not None]
-    if _records_grad(*params) or _capturing(conv.weight):
+    if _records_grad(*params):
         return phase_weight(conv.weight), None if conv.bias is None else conv.bias.repeat_interleave(4)
     key = tuple(v for p in params for v in (id(p), p.data_ptr(), p._version))
     cached = _PHASE_PARAMS.get(conv)
@@ -128,11 +132,6 @@ def phase_params(conv: torch.nn.Conv2d) -> tuple[torch.Tensor, torch.Tensor | No
             cached = (key, phase_weight(conv.weight), bias)
         _PHASE_PARAMS[conv] = cached
     return cached[1], cached[2]
-
-
-def _capturing(weight: torch.Tensor) -> bool:
-    """Whether a CUDA graph is being captured on the current stream (never on a CPU)."""
-    return weight.is_cuda and torch.cuda.is_current_stream_capturing()
 
 
 def phase_max(grouped: torch.Tensor) -> torch.Tensor:

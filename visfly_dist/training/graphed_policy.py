@@ -13,8 +13,8 @@ Only rollouts without gradients use it (``TensorPPO._act``); anything that canno
 failed capture says why once. ``VISFLY_CUDA_GRAPHS=0`` keeps every forward eager.
 
 A replay runs no Python: anything the forward computes from the parameters and keeps on the Python
-side (the phase form's kernel, :func:`~visfly_dist.training.conv_pool.phase_params`, is rebuilt
-during a capture for that reason) would stay as it was at the capture. After every update,
+side would stay as it was at the capture (the CPU's phase form of the first convolution keeps its
+kernel so, :func:`~visfly_dist.training.conv_pool.phase_params`; a GPU runs the plain form). After every update,
 :meth:`GraphedForward.verify` replays each graph and compares it with the eager policy on the same
 observations; on a mismatch the graphs are dropped and the rollout goes eager, saying so.
 """
