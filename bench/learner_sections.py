@@ -1,6 +1,6 @@
 """Where the learner's main thread spends a training step, section by section, in real training.
 
-    python bench/learner_sections.py [--timesteps 196608] [--num-envs N] [--json out.json]
+    python bench/learner_sections.py [--timesteps 196608] [--num-envs N] [--overlap] [--json out.json]
 
 Trains the task's default trainer with the host plan (any option left out is the plan's, as with
 ``visfly-dist train``) and times, on the training thread only, the sections of the loop that the
@@ -89,6 +89,7 @@ def main() -> None:
     parser.add_argument("--task", default="navigation")
     parser.add_argument("--timesteps", type=int, default=196_608)
     parser.add_argument("--num-envs", type=int)
+    parser.add_argument("--overlap", action=argparse.BooleanOptionalAction, help="default: the host plan's")
     parser.add_argument("--json", help="write the figures here too")
     args = parser.parse_args()
     sections = Sections()
@@ -106,8 +107,8 @@ def main() -> None:
 
     tensor_ppo.TensorPPO.collect = counted_collect  # type: ignore[method-assign]
     out = Path(tempfile.mkdtemp(prefix="visfly-sections-"))
-    cfg = TrainConfig(task=args.task, timesteps=args.timesteps, num_envs=args.num_envs, seed=0, out=str(out),
-                      checkpoint_every=0, progress=False)
+    cfg = TrainConfig(task=args.task, timesteps=args.timesteps, num_envs=args.num_envs, overlap=args.overlap, seed=0,
+                      out=str(out), checkpoint_every=0, progress=False)
     wall = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()):
         train(cfg)
