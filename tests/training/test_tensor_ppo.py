@@ -285,6 +285,42 @@ def test_statistics_stay_beside_the_env_and_the_rollout_on_the_learners_device(d
         env.close()
 
 
+def test_each_overlapped_group_acts_on_the_observation_its_last_step_handed_out() -> None:
+    """Two groups in flight: the rollout stores, for each group at step t + 1, the rows its step t
+    returned (the reset's at t = 0); the rollout's last values read each group's latest rows."""
+    env = make_counter(seed=2)
+    try:
+        model = PPO("MultiInputPolicy", env, n_steps=6, batch_size=8, device="cpu", seed=0)
+        trainer = TensorPPO(model, env, normalize=False, overlap=True)
+        assert [g.tolist() for g in trainer.groups] == [[0, 1], [2, 3]]
+        returned: dict[int, list[dict[str, torch.Tensor]]] = {0: [], 1: []}
+        recv = env.recv
+
+        def recorded(timeout_s=None):
+            result, ids = recv(timeout_s)
+            returned[int(ids[0]) // 2].append({k: v.clone() for k, v in result.observation.items()})
+            return result, ids
+
+        env.recv = recorded
+        first = {k: torch.as_tensor(v) for k, v in env.reset().items()}
+        env.reset = lambda: first  # the trainer's reset takes these rows
+        trainer.reset()
+        trainer.collect()
+        stored = trainer.rollout.observations
+        for g, rows in enumerate(trainer.groups):
+            assert len(returned[g]) == 6
+            for key in ("state", "step", "depth"):
+                torch.testing.assert_close(stored[key][0, rows], first[key][rows])
+                for t in range(5):
+                    torch.testing.assert_close(stored[key][t + 1, rows], returned[g][t][key])
+        latest = trainer._observation()  # every agent's view, for the rollout's last values
+        for g, rows in enumerate(trainer.groups):
+            for key in ("state", "step", "depth"):
+                torch.testing.assert_close(latest[key][rows], returned[g][-1][key])
+    finally:
+        env.close()
+
+
 def test_each_ended_episode_is_recorded_with_its_own_flags_return_and_length() -> None:
     """Only the ended rows reach the episode log, in index order, each with its own end flags."""
     from types import SimpleNamespace

@@ -373,7 +373,8 @@ class TensorPPO:
             torch.backends.cudnn.benchmark = True
         self.threads = UpdateThreadChooser([update_threads] if update_threads else [max(cpu_cores, 1), 1])
         self.phase_seconds = {"rollout_s": 0.0, "update_s": 0.0, "loop_s": 0.0}
-        self._obs: dict[str, torch.Tensor] | None = None  # normalised observation of every agent, on the device
+        # each group's normalised observation, on the device: a group acts on its own, never gathered or scattered
+        self._obs: list[dict[str, torch.Tensor]] | None = None
         self._on_episode: Callable[[dict[str, Any]], None] | None = None
 
     def _groups(self, overlap: bool) -> list[torch.Tensor]:
@@ -420,7 +421,9 @@ class TensorPPO:
     def reset(self) -> None:
         """Reset the env and take in its first observation (``learn`` does this before its first rollout)."""
         first = {k: torch.as_tensor(v) for k, v in self.env.reset().items()}
-        self._obs = self._to_device(self.norm.observe(first))
+        everyone = self._to_device(self.norm.observe(first))
+        self._obs = [everyone] if len(self.groups) == 1 else [{k: v[rows] for k, v in everyone.items()}
+                                                              for rows in self.group_rows]
 
     def collect(self) -> None:
         """One rollout of ``n_steps`` per agent into :attr:`rollout` (GAE included)."""
@@ -455,13 +458,11 @@ class TensorPPO:
 
     def _act(self, g: int, t: int) -> torch.Tensor:
         """Sample actions for group ``g`` at rollout step ``t`` and store what PPO needs of them."""
-        everyone = len(self.groups) == 1
-        current = self._observation()
-        ids = self.group_rows[g]
-        obs = current if everyone else {k: v[ids] for k, v in current.items()}
+        assert self._obs is not None, "learn() resets the env before it collects"
+        obs = self._obs[g]
         actions, values, log_probs = self.forward(obs)
         r = self.rollout
-        rows = slice(None) if everyone else ids
+        rows = slice(None) if len(self.groups) == 1 else self.group_rows[g]
         r.store_observation(t, rows, obs)
         r.actions[t, rows] = actions
         r.values[t, rows] = values.flatten()
@@ -497,13 +498,8 @@ class TensorPPO:
         r.rewards[t, index] = reward
         r.dones[t, index] = done
         r.held[t, index] = held
-        fresh = {k: moved[f"obs.{k}"] for k in obs}
-        if everyone:
-            self._obs = fresh
-        else:
-            current = self._observation()
-            for k, v in fresh.items():
-                current[k][index] = v
+        assert self._obs is not None, "learn() resets the env before it collects"
+        self._obs[g] = {k: moved[f"obs.{k}"] for k in obs}
         if any_ended and self._on_episode is not None:  # a collect outside learn() records no episodes
             self._record_episodes(ended, truncated, info)
 
@@ -524,7 +520,14 @@ class TensorPPO:
     def _observation(self) -> dict[str, torch.Tensor]:
         """The normalised observation of every agent, on the device (there once ``learn`` reset the env)."""
         assert self._obs is not None, "learn() resets the env before it collects"
-        return self._obs
+        if len(self._obs) == 1:
+            return self._obs[0]
+        first = self._obs[0]
+        out = {k: torch.empty((self.num_envs, *v.shape[1:]), dtype=v.dtype, device=v.device) for k, v in first.items()}
+        for rows, obs in zip(self.group_rows, self._obs):
+            for k, v in obs.items():
+                out[k][rows] = v
+        return out
 
     def _to_device(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         if self.device.type == "cpu":
