@@ -11,7 +11,7 @@
 # job with no flags for what time is left, at most NAV_LIMIT_S, then 100 deterministic episodes on
 # unseen garages), step128 / step1024 (bench step at that many agents alone; step1024same with
 # the same 56 scenes at 1, 8 and 14 workers), gputests (pytest of
-# the tests that need a GPU),
+# the tests that need a GPU), sections (the training thread's sections in the main job's configuration),
 # profile (cProfile of the learner's main thread over a short default run).
 set -u
 OUT="${OUT:-bench/results/gpu}"
@@ -48,6 +48,16 @@ step_gputests() {  # the tests that only a GPU runs (CUDA graphs, pinned copies)
       > "$WORK/gputests.log" 2>&1
   echo "   exit $?" | tee -a "$OUT/status.txt"
   tail -n 30 "$WORK/gputests.log"
+  pack
+}
+step_sections() {  # the training thread's sections in the main job's configuration (bench/learner_sections.py)
+  local limit; limit=$(left); (( limit > 100 )) && limit=100
+  (( limit < 40 )) && { echo "== sections: skipped" | tee -a "$OUT/status.txt"; return; }
+  echo "== sections (limit ${limit} s): bench/learner_sections.py --timesteps 131072" | tee -a "$OUT/status.txt"
+  timeout -s INT -k 20 "$limit" "$PY" bench/learner_sections.py --timesteps 131072 --json "$WORK/sections.json" \
+      > "$WORK/sections.log" 2>&1
+  echo "   exit $?" | tee -a "$OUT/status.txt"
+  grep -v -E "^video:" "$WORK/sections.log" | tail -n 26
   pack
 }
 step_step128() {  # the main job's agents on GPU hosts (the loop's ratio to the simulator)
