@@ -21,10 +21,19 @@ def _actions(env, seed: int) -> torch.Tensor:
     return torch.as_tensor(np.clip(hover + rng.uniform(-0.3, 0.3, (STEPS, env.num_envs, 4)), -1, 1), dtype=torch.float32)
 
 
-def _plain(env, actions: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]:
-    """Rewards, observations, ends and terminal observations, ``(STEPS, N, ...)`` each."""
+def _start(env, held: torch.Tensor | None) -> None:
+    """Seed and reset; with ``held``, one step in which those agents are held (their episodes are
+    then a step behind the others', so that a group's episodes end at different steps)."""
     env.seed(11)
     env.reset()
+    if held is not None:
+        env.step_tensor(torch.as_tensor(env.quad.hover_action()).expand(env.num_envs, 4), hold=held)
+
+
+def _plain(env, actions: torch.Tensor, held: torch.Tensor | None = None
+           ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]:
+    """Rewards, observations, ends and terminal observations, ``(STEPS, N, ...)`` each."""
+    _start(env, held)
     rewards, ended = [], []
     observations: dict[str, list[np.ndarray]] = {}
     terminal: dict[str, list[np.ndarray]] = {}
@@ -40,31 +49,36 @@ def _plain(env, actions: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray
     return np.array(rewards), stack(observations), np.array(ended), stack(terminal)
 
 
-def _grouped(env, actions: torch.Tensor) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]:
+def _grouped(env, actions: torch.Tensor, groups: list[torch.Tensor] | None = None, terminal_rows: str = "all",
+             held: torch.Tensor | None = None) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, dict[str, np.ndarray]]:
     """Each group sent again as soon as its step is in, while the other is still in flight. What
-    ``recv`` returned is kept as it was (later steps write nothing into it)."""
-    env.seed(11)
-    env.reset()
-    groups = [torch.tensor([0]), torch.tensor([1])]
-    rewards = np.zeros((STEPS, 2))
-    ended = np.zeros((STEPS, 2), dtype=bool)
+    ``recv`` returned is kept as it was (later steps write nothing into it). ``terminal_rows``:
+    ``recv``'s ``terminal``; with ``"ended"`` only the ended agents' terminal rows are filled in."""
+    _start(env, held)
+    groups = groups or [torch.tensor([0]), torch.tensor([1])]
+    n = env.num_envs
+    rewards = np.zeros((STEPS, n))
+    ended = np.zeros((STEPS, n), dtype=bool)
     observations: dict[str, np.ndarray] = {}
     terminal: dict[str, np.ndarray] = {}
     kept = []
-    steps = [0, 0]
+    steps = [0] * len(groups)
     for g, ids in enumerate(groups):
         env.send(actions[0, ids], ids)
-    in_flight = 2
+    in_flight = len(groups)
     while in_flight:
-        result, ids = env.recv()
+        result, ids = env.recv(terminal=terminal_rows)
         obs, reward, terminated, truncated, info = result
-        g = int(ids[0])
+        g = next(i for i, group in enumerate(groups) if torch.equal(group, ids))
         t = steps[g]
-        rewards[t, g] = float(reward[0])
-        ended[t, g] = bool((terminated | truncated)[0])
-        for out, entries in ((observations, obs), (terminal, info["terminal_observation"])):
+        agents = ids.numpy()
+        rewards[t, agents] = reward.detach().numpy()
+        ended[t, agents] = (terminated | truncated).numpy()
+        terminal_agents = agents if terminal_rows == "all" else agents[(terminated | truncated).numpy()]
+        for out, entries, rows in ((observations, obs, agents), (terminal, info["terminal_observation"], terminal_agents)):
             for k, v in entries.items():
-                out.setdefault(k, np.zeros((STEPS, 2, *v.shape[1:]), v.detach().numpy().dtype))[t, g] = v[0].detach().numpy()
+                assert len(v) == len(rows), f"{k}: {len(v)} rows for agents {rows.tolist()}"
+                out.setdefault(k, np.zeros((STEPS, n, *v.shape[1:]), v.detach().numpy().dtype))[t, rows] = v.detach().numpy()
         kept.append((obs, info["terminal_observation"], {k: v.clone() for k, v in obs.items()},
                      {k: v.clone() for k, v in info["terminal_observation"].items()}))
         steps[g] += 1
@@ -96,7 +110,8 @@ def test_two_groups_in_flight_get_the_rewards_of_the_plain_step(envs, task):
     np.testing.assert_array_equal(grouped_ended[live], ended[live])
 
 
-def test_groups_whose_episodes_end_get_the_first_views_and_terminal_observations_of_the_plain_step():
+@pytest.mark.parametrize("terminal_rows", ["all", "ended"])
+def test_groups_whose_episodes_end_get_the_first_views_and_terminal_observations_of_the_plain_step(terminal_rows):
     """Episodes cut every two steps: each group's reset merges fresh rows into the env's frame
     while the other group is in flight; every step matches the plain step, reset rows included."""
     settings = dict(SETTINGS["navigation"])
@@ -104,13 +119,39 @@ def test_groups_whose_episodes_end_get_the_first_views_and_terminal_observations
     try:
         actions = _actions(env, seed=5)
         rewards, observations, ended, terminal = _plain(env, actions)
-        grouped_rewards, grouped_observations, grouped_ended, grouped_terminal = _grouped(env, actions)
+        grouped_rewards, grouped_observations, grouped_ended, grouped_terminal = _grouped(
+            env, actions, terminal_rows=terminal_rows)
     finally:
         env.close()
     assert ended[1].all() and ended[3].all()
     for k, v in observations.items():
         assert not np.array_equal(terminal[k][1], v[1]), f"{k}: the first view of a new episode is not the terminal one"
         np.testing.assert_allclose(grouped_observations[k], v, atol=1e-5, err_msg=k)
-        np.testing.assert_allclose(grouped_terminal[k], terminal[k], atol=1e-5, err_msg=k)
+        np.testing.assert_allclose(grouped_terminal[k][ended], terminal[k][ended], atol=1e-5, err_msg=k)
+        if terminal_rows == "all":
+            np.testing.assert_allclose(grouped_terminal[k], terminal[k], atol=1e-5, err_msg=k)
+    np.testing.assert_allclose(grouped_rewards, rewards, atol=1e-5)
+    np.testing.assert_array_equal(grouped_ended, ended)
+
+
+@pytest.mark.parametrize("terminal_rows", ["all", "ended"])
+def test_groups_of_several_agents_whose_episodes_end_apart_match_the_plain_step(terminal_rows):
+    """Two groups of two, one agent of each a step behind the other: in every group step one
+    agent's episode ends and the other's goes on, so the reset agents' first views are written
+    into the group's rows at their own places (and only the ended rows are terminal with "ended")."""
+    settings = dict(SETTINGS["navigation"], num_envs=4)
+    env = make_env("navigation", num_envs=settings.pop("num_envs"), seed=1, max_episode_steps=2, **settings)
+    held = torch.tensor([False, True, True, False])
+    try:
+        actions = _actions(env, seed=7)
+        rewards, observations, ended, terminal = _plain(env, actions, held)
+        grouped_rewards, grouped_observations, grouped_ended, grouped_terminal = _grouped(
+            env, actions, [torch.tensor([0, 1]), torch.tensor([2, 3])], terminal_rows, held)
+    finally:
+        env.close()
+    assert (ended.sum(axis=1) == 2).all() and not ended.all(axis=1).any(), "half the agents end each step"
+    for k, v in observations.items():
+        np.testing.assert_allclose(grouped_observations[k], v, atol=1e-5, err_msg=k)
+        np.testing.assert_allclose(grouped_terminal[k][ended], terminal[k][ended], atol=1e-5, err_msg=k)
     np.testing.assert_allclose(grouped_rewards, rewards, atol=1e-5)
     np.testing.assert_array_equal(grouped_ended, ended)

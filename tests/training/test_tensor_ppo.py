@@ -248,6 +248,41 @@ def test_episodes_cut_by_the_time_limit_are_bootstrapped_from_their_own_terminal
         env.close()
 
 
+def test_overlapped_groups_bootstrap_cut_episodes_from_their_own_terminal_view() -> None:
+    """The same with two groups in flight: each group's step hands out only its ended agents'
+    terminal rows, and agent 0's early success puts it out of phase with agent 1 of its group."""
+    env = make_counter(seed=1)
+    try:
+        model = PPO("MultiInputPolicy", env, n_steps=12, batch_size=16, gamma=0.9, device="cpu", seed=0)
+        trainer = TensorPPO(model, env, normalize=False, overlap=True)
+        trainer.reset()
+        seen, recv = [], env.recv
+
+        def recorded(timeout_s=None, terminal="all"):
+            env.force_success[0] = len(seen) == 2
+            result, ids = recv(timeout_s, terminal)
+            seen.append((result, ids))
+            return result, ids
+
+        env.recv = recorded
+        trainer.collect()
+        steps, cut_steps = [0, 0], 0
+        for (obs, reward, terminated, truncated, info), ids in seen:
+            g, ended = int(ids[0]) // 2, (terminated | truncated).nonzero().squeeze(1).tolist()
+            expected = reward.clone()
+            for i in truncated.nonzero().squeeze(1).tolist():
+                assert len(next(iter(info["terminal_observation"].values()))) == len(ended)
+                row = {k: v[ended.index(i)][None] for k, v in info["terminal_observation"].items()}
+                with torch.no_grad():
+                    expected[i] += 0.9 * model.policy.predict_values(row).item()
+            cut_steps += bool(truncated.any() and not truncated[0]) and g == 0
+            torch.testing.assert_close(trainer.rollout.rewards[steps[g], ids], expected.to(trainer.rollout.rewards.dtype))
+            steps[g] += 1
+        assert steps == [12, 12] and cut_steps >= 1  # agent 1 was cut while agent 0 of its group flew on
+    finally:
+        env.close()
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs a GPU torch can use"))])
 def test_statistics_stay_beside_the_env_and_the_rollout_on_the_learners_device(device: str) -> None:
@@ -296,8 +331,8 @@ def test_each_overlapped_group_acts_on_the_observation_its_last_step_handed_out(
         returned: dict[int, list[dict[str, torch.Tensor]]] = {0: [], 1: []}
         recv = env.recv
 
-        def recorded(timeout_s=None):
-            result, ids = recv(timeout_s)
+        def recorded(timeout_s=None, terminal="all"):
+            result, ids = recv(timeout_s, terminal)
             returned[int(ids[0]) // 2].append({k: v.clone() for k, v in result.observation.items()})
             return result, ids
 

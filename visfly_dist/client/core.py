@@ -373,9 +373,11 @@ class TensorEnv:
         """Take in a sent step: task hooks, terminations, resets. Tensors over all N agents; only the
         rows of ``flight.group`` are this step's (the others are zero / False).
 
-        ``ids``: the group's agents (``recv``): only their rows are returned, copies, so the frame's
-        images stay the env's own and are merged into in place (:meth:`_merge`).
-        ``terminal``: see :meth:`step_tensor` (a plain step only)."""
+        ``ids``: the group's agents (``recv``): only their rows are returned, never the frame's own
+        images (which are merged into in place, :meth:`_merge`): an image the task passes through
+        is handed out as the group's fresh rows (its reset agents' first views written into them),
+        the other entries as copies.
+        ``terminal``: see :meth:`step_tensor` and :meth:`recv`."""
         t0 = time.perf_counter()
         self.sim_time = flight.sim_time  # the task hooks see this group's time
         obs, spawn_obs = self.aggregator.collect(flight.ticket)
@@ -441,7 +443,7 @@ class TensorEnv:
         # the terminal rows handed out are taken before a reset writes the new rows into the frame's images
         ended_rows = None
         if ids is not None and reset:
-            ended_rows = _rows(observation, ids)
+            ended_rows = _rows(observation, ids if terminal == "all" else ended)
         elif terminal == "ended":  # no episode ended: no rows (views, no copy)
             ended_rows = {k: v[:0] for k, v in observation.items()} if ended is None else _rows(observation, ended)
             info["terminal_observation"] = ended_rows
@@ -453,11 +455,30 @@ class TensorEnv:
                              "total_s": time.perf_counter() - flight.started}
         if ids is None:
             return StepResult(observation, reward, terminated, truncated, info)
-        picked = _rows(observation, ids)
+        picked = self._group_rows(observation, rows, ids, ended)
         picked_info: dict[str, Any] = _rows({k: v for k, v in info.items() if k != "terminal_observation"}, ids)
-        picked_info["terminal_observation"] = dict(picked) if ended_rows is None else ended_rows  # no reset: the same rows
+        if ended_rows is None:  # no reset: the same rows (an "ended" terminal observation holds none)
+            ended_rows = dict(picked) if terminal == "all" else {k: v[:0] for k, v in picked.items()}
+        picked_info["terminal_observation"] = ended_rows
         return StepResult(picked, reward.index_select(0, ids), terminated.index_select(0, ids),
                           truncated.index_select(0, ids), picked_info)
+
+    def _group_rows(self, observation: dict[str, torch.Tensor], fresh: SensorFrame, ids: torch.Tensor,
+                    ended: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Rows ``ids`` of ``observation``. An image the task passes through (the frame's own) is not
+        copied out of the frame: ``fresh``, the group's rows this step brought (not handed out yet,
+        nothing else refers to them), holds the same, but for the reset agents' first views, which
+        are written into it; every other entry is a copy."""
+        picked = {}
+        for k, v in observation.items():
+            image = fresh.images.get(k)
+            if image is None or v is not self.frame.images.get(k):
+                picked[k] = v.index_select(0, ids)
+                continue
+            if ended is not None:
+                image.index_copy_(0, torch.searchsorted(ids, ended), v.index_select(0, ended))
+            picked[k] = image
+        return picked
 
     def _hold_lost(self, lost_rows: np.ndarray, flight: _InFlight) -> torch.Tensor | None:
         """``(N,)`` bool: the agents of this step with no fresh observation that are held (``None``
@@ -504,19 +525,26 @@ class TensorEnv:
         with torch.set_grad_enabled(self.config.requires_grad):
             self._in_flight.append(self._send(full, group, None))
 
-    def recv(self, timeout_s: float | None = None) -> tuple[StepResult, torch.Tensor]:
+    def recv(self, timeout_s: float | None = None,
+             terminal: Literal["all", "ended"] = "all") -> tuple[StepResult, torch.Tensor]:
         """The step of the first group whose observations are in: its rows only, and its env ids.
 
+        ``terminal``: what ``info["terminal_observation"]`` holds when an episode of the group ended:
+        every row of the group (``"all"``), or only the rows of the agents whose episode ended, in
+        index order (``"ended"``: a trainer's fast path, no copy of the group's other images).
+
         Raises:
-            ConfigError: nothing was sent.
+            ConfigError: nothing was sent, or ``terminal`` is neither.
         """
         if not self._in_flight:
             raise ConfigError("recv() without a send() in flight")
+        if terminal not in ("all", "ended"):
+            raise ConfigError(f"terminal={terminal!r} must be 'all' or 'ended'")
         i = self.aggregator.wait_any([f.ticket for f in self._in_flight], timeout_s)
         flight = self._in_flight.pop(0 if i is None else i)  # on timeout, the oldest (its collect is bounded)
         ids = flight.group.nonzero().squeeze(1)
         with torch.set_grad_enabled(self.config.requires_grad):
-            return self._finish(flight, ids), ids
+            return self._finish(flight, ids, terminal), ids
 
     def _take_swapped(self, members: np.ndarray) -> torch.Tensor | None:
         """``(N,)`` bool: agents of ``members`` whose scene changed under their episode (None if

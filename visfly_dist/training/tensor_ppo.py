@@ -445,7 +445,7 @@ class TensorPPO:
             self.env.send(self._act(g, 0), ids)
         in_flight = len(self.groups)
         while in_flight:
-            result, ids = self.env.recv()
+            result, ids = self.env.recv(terminal="ended")
             g = int(owner[int(ids[0])])
             self._take(g, steps[g], result)
             steps[g] += 1
@@ -479,8 +479,7 @@ class TensorPPO:
                                   held if any_held else None)
         if any_cut:  # bootstrap episodes that did not end by themselves (SB3's TimeLimit handling)
             cut_rows = truncated.nonzero().squeeze(1)  # on the env's device
-            # a plain step's terminal observation holds the ended rows only, a group's every row
-            cut = truncated[ended] if everyone else cut_rows
+            cut = truncated[ended]  # the terminal observation holds the ended rows only
             terminal = self.norm.observe({k: v[cut.to(v.device)] for k, v in info["terminal_observation"].items()},
                                          update=False)
         normalised = self.norm.observe(obs)
