@@ -60,6 +60,18 @@ step_sections() {  # the training thread's sections in the main job's configurat
   grep -v -E "^video:" "$WORK/sections.log" | tail -n 26
   pack
 }
+step_envsections() {  # the env core alone per group step, the main job's groups of 64 and groups of 512 (bench/env_sections.py)
+  local limit; limit=$(left); (( limit > 60 )) && limit=60
+  (( limit < 30 )) && { echo "== envsections: skipped" | tee -a "$OUT/status.txt"; return; }
+  echo "== envsections (limit ${limit} s): bench/env_sections.py --groups 2 --num-envs 128 / 1024" | tee -a "$OUT/status.txt"
+  for n in 128 1024; do
+    timeout -s INT -k 10 $(( limit / 2 )) "$PY" bench/env_sections.py --groups 2 --num-envs $n --steps 200 \
+        --json "$WORK/envsections-$n.json" > "$WORK/envsections-$n.log" 2>&1
+    echo "   $n agents: exit $?" | tee -a "$OUT/status.txt"
+    tail -n 21 "$WORK/envsections-$n.log"
+  done
+  pack
+}
 step_step128() {  # the main job's agents on GPU hosts (the loop's ratio to the simulator)
   run step-128 45 bench step --agents 128 --workers 1 4 --steps 100 --json "$WORK/step-128.json"
 }

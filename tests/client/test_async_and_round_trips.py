@@ -85,8 +85,11 @@ def test_send_recv_returns_groups_and_matches_the_synchronous_step(env):
     result, ids = env.recv()
     assert ids.tolist() == [0, 1] and result.truncated.all()
     assert env.episode_step.tolist() == [0, 0, 1, 1]
-    with pytest.raises(ConfigError, match="distinct indices"):
-        env.send(hover, [4, 5])
+    for bad in ([4, 5], [1, 1], [-1, 0], [0.0, 1.0], []):  # out of range, repeated, negative, not ints, none
+        with pytest.raises(ConfigError, match="distinct indices"):
+            env.send(hover[:len(bad)], bad)
+    with pytest.raises(ConfigError, match="without a send"):  # nothing was sent
+        env.recv()
 
 
 def test_a_reset_drops_the_groups_in_flight_and_a_step_refuses_them(env):

@@ -93,7 +93,7 @@ def _grouped(env, actions: torch.Tensor, groups: list[torch.Tensor] | None = Non
     return rewards, observations, ended, terminal
 
 
-@pytest.mark.parametrize("task", ["navigation", "racing", "hover"])
+@pytest.mark.parametrize("task", ["navigation", "racing", "hover", "tracking", "landing"])
 def test_two_groups_in_flight_get_the_rewards_of_the_plain_step(envs, task):
     env = envs(task)
     actions = _actions(env, seed=3)

@@ -455,25 +455,28 @@ class TensorEnv:
                              "total_s": time.perf_counter() - flight.started}
         if ids is None:
             return StepResult(observation, reward, terminated, truncated, info)
-        picked = self._group_rows(observation, rows, ids, ended)
-        picked_info: dict[str, Any] = _rows({k: v for k, v in info.items() if k != "terminal_observation"}, ids)
+        span = _span(ids)
+        picked = self._group_rows(observation, rows, ids, span, ended)
+        # this step's tensors: the env replaces them next step, never writes into them, so a view is safe
+        picked_info: dict[str, Any] = {k: _pick(v, span) for k, v in info.items() if k != "terminal_observation"}
         if ended_rows is None:  # no reset: the same rows (an "ended" terminal observation holds none)
             ended_rows = dict(picked) if terminal == "all" else {k: v[:0] for k, v in picked.items()}
         picked_info["terminal_observation"] = ended_rows
-        return StepResult(picked, reward.index_select(0, ids), terminated.index_select(0, ids),
-                          truncated.index_select(0, ids), picked_info)
+        return StepResult(picked, _pick(reward, span), _pick(terminated, span), _pick(truncated, span), picked_info)
 
     def _group_rows(self, observation: dict[str, torch.Tensor], fresh: SensorFrame, ids: torch.Tensor,
-                    ended: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        """Rows ``ids`` of ``observation``. An image the task passes through (the frame's own) is not
+                    span: slice | torch.Tensor, ended: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        """Rows ``ids`` (``span``: the same, a slice where they are consecutive) of ``observation``.
+        An image the task passes through (the frame's own, written into by later steps) is not
         copied out of the frame: ``fresh``, the group's rows this step brought (not handed out yet,
         nothing else refers to them), holds the same, but for the reset agents' first views, which
-        are written into it; every other entry is a copy."""
+        are written into it. Every other entry is this step's own: its rows (a view where they are
+        consecutive)."""
         picked = {}
         for k, v in observation.items():
             image = fresh.images.get(k)
             if image is None or v is not self.frame.images.get(k):
-                picked[k] = v.index_select(0, ids)
+                picked[k] = v.index_select(0, ids) if any(v is i for i in self.frame.images.values()) else _pick(v, span)
                 continue
             if ended is not None:
                 image.index_copy_(0, torch.searchsorted(ids, ended), v.index_select(0, ended))
@@ -508,18 +511,21 @@ class TensorEnv:
         self._check_open()
         if self.frame is None:
             self._first_reset()
-        ids = torch.as_tensor(np.asarray(env_ids), dtype=torch.long, device=self.device).reshape(-1)
-        if ids.numel() == 0 or int(ids.min()) < 0 or int(ids.max()) >= self.num_envs or len(set(ids.tolist())) != len(ids):
-            raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {ids.tolist()[:10]}")
-        group = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
-        group[ids] = True
-        busy = [f.group for f in self._in_flight]
-        if any(bool((g & group).any()) for g in busy):
+        given = np.asarray(env_ids.cpu() if isinstance(env_ids, torch.Tensor) else env_ids).reshape(-1)
+        if not given.size or not np.issubdtype(given.dtype, np.integer) or given.min() < 0 or given.max() >= self.num_envs:
+            raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {given.tolist()[:10]}")
+        members = np.zeros(self.num_envs, dtype=bool)  # on the host: these checks are a few NumPy calls
+        members[given] = True
+        if int(members.sum()) != len(given):
+            raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {given.tolist()[:10]}")
+        if any(f.members[given].any() for f in self._in_flight):
             raise ConfigError("send(): some env_ids are still in flight; recv() them first")
         if self.agents_per_scene > 1 and self.config.multi_agent:
-            teams = group.view(-1, self.agents_per_scene)
-            if bool((teams.any(dim=1) & ~teams.all(dim=1)).any()):
+            teams = members.reshape(-1, self.agents_per_scene)
+            if (teams.any(axis=1) & ~teams.all(axis=1)).any():
                 raise ConfigError(f"send(): env_ids must hold whole teams of {self.agents_per_scene} agents")
+        group = torch.from_numpy(members).to(self.device)
+        ids = torch.as_tensor(given, dtype=torch.long, device=self.device)
         full = self.actions.detach().clone()
         full[ids] = self._actions(actions, len(ids))
         with torch.set_grad_enabled(self.config.requires_grad):
@@ -771,6 +777,17 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     """``array``, marked read only (shared by every plain step: nothing may write into it)."""
     array.setflags(write=False)
     return array
+
+
+def _span(ids: torch.Tensor) -> slice | torch.Tensor:
+    """Ascending distinct ``ids`` as a slice where they are consecutive (a group of the trainer's), else themselves."""
+    first, last = int(ids[0]), int(ids[-1])
+    return slice(first, last + 1) if last - first + 1 == len(ids) else ids
+
+
+def _pick(tensor: torch.Tensor, span: slice | torch.Tensor) -> torch.Tensor:
+    """Rows ``span`` of ``tensor``: a view for a slice, else a copy."""
+    return tensor[span] if isinstance(span, slice) else tensor.index_select(0, span)
 
 
 def _rows(tensors: dict[str, torch.Tensor], ids: torch.Tensor) -> dict[str, torch.Tensor]:
