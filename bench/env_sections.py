@@ -17,14 +17,14 @@ a hot loop before concluding that a piece is slow in itself.
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 
+from learner_sections import Sections  # this folder: the same wrapper, thread CPU and wall per section
 from visfly_dist import make_env
 from visfly_dist.aggregator import aggregator, pool
 from visfly_dist.client import core
@@ -54,32 +54,6 @@ SECTIONS: list[tuple[Any, str, str]] = [
 ]
 
 
-class Timer:
-    """Thread CPU seconds and calls per section, counted while ``on``."""
-
-    def __init__(self) -> None:
-        self.cpu: collections.Counter[str] = collections.Counter()
-        self.calls: collections.Counter[str] = collections.Counter()
-        self.on = False
-
-    def wrap(self, owner: Any, name: str, label: str, env_class: type) -> None:
-        # a hook the task overrides is wrapped on the task's class, where the env looks it up
-        owner = env_class if owner is core.TensorEnv and name in vars(env_class) else owner
-        method: Callable[..., Any] = getattr(owner, name)
-
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            if not self.on:
-                return method(*args, **kwargs)
-            start = time.thread_time()
-            try:
-                return method(*args, **kwargs)
-            finally:
-                self.cpu[label] += time.thread_time() - start
-                self.calls[label] += 1
-
-        setattr(owner, name, timed)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--task", default="navigation")
@@ -90,9 +64,10 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     env = make_env(args.task, num_envs=args.num_envs, seed=0)
-    timer = Timer()
+    timer = Sections()
     for owner, name, label in SECTIONS:
-        timer.wrap(owner, name, label, type(env))
+        # a hook the task overrides is wrapped on the task's class, where the env looks it up
+        timer.wrap(type(env) if owner is core.TensorEnv and name in vars(type(env)) else owner, name, label)
     generator = torch.Generator().manual_seed(0)
     n = args.num_envs
 
