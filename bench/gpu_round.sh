@@ -12,7 +12,8 @@
 # unseen garages), step128 / step1024 (bench step at that many agents alone; step1024same with
 # the same 56 scenes at 1, 8 and 14 workers), gputests (pytest of
 # the tests that need a GPU), sections (the training thread's sections in the main job's configuration),
-# profile (cProfile of the learner's main thread over a short default run).
+# profile (cProfile of the learner's main thread over a short default run), envsections (the env
+# core alone per group step, bench/env_sections.py).
 set -u
 OUT="${OUT:-bench/results/gpu}"
 PY="${PYTHON:-python3}"
@@ -60,11 +61,11 @@ step_sections() {  # the training thread's sections in the main job's configurat
   grep -v -E "^video:" "$WORK/sections.log" | tail -n 26
   pack
 }
-step_envsections() {  # the env core alone per group step, the main job's groups of 64 and groups of 512 (bench/env_sections.py)
-  local limit; limit=$(left); (( limit > 60 )) && limit=60
-  (( limit < 30 )) && { echo "== envsections: skipped" | tee -a "$OUT/status.txt"; return; }
-  echo "== envsections (limit ${limit} s): bench/env_sections.py --groups 2 --num-envs 128 / 1024" | tee -a "$OUT/status.txt"
-  for n in 128 1024; do
+step_envsections() {  # the env core alone per group step: the main job's groups of 64, and of 128 (bench/env_sections.py)
+  local limit; limit=$(left); (( limit > 90 )) && limit=90
+  (( limit < 40 )) && { echo "== envsections: skipped" | tee -a "$OUT/status.txt"; return; }
+  echo "== envsections (limit ${limit} s): bench/env_sections.py --groups 2 --num-envs 128 / 256" | tee -a "$OUT/status.txt"
+  for n in 128 256; do
     timeout -s INT -k 10 $(( limit / 2 )) "$PY" bench/env_sections.py --groups 2 --num-envs $n --steps 200 \
         --json "$WORK/envsections-$n.json" > "$WORK/envsections-$n.log" 2>&1
     echo "   $n agents: exit $?" | tee -a "$OUT/status.txt"
