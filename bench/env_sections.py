@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-
 from learner_sections import Sections  # this folder: the same wrapper, thread CPU and wall per section
+
 from visfly_dist import make_env
 from visfly_dist.aggregator import aggregator, pool
 from visfly_dist.client import core

@@ -442,7 +442,7 @@ class TensorEnv:
         ended = done.nonzero().squeeze(1) if reset else None
         # the terminal rows handed out are taken before a reset writes the new rows into the frame's images
         ended_rows = None
-        if ids is not None and reset:
+        if ids is not None and ended is not None:
             ended_rows = _rows(observation, ids if terminal == "all" else ended)
         elif terminal == "ended":  # no episode ended: no rows (views, no copy)
             ended_rows = {k: v[:0] for k, v in observation.items()} if ended is None else _rows(observation, ended)
@@ -472,11 +472,13 @@ class TensorEnv:
         nothing else refers to them), holds the same, but for the reset agents' first views, which
         are written into it. Every other entry is this step's own: its rows (a view where they are
         consecutive)."""
+        frame = self.frame
+        assert frame is not None, "a group's step follows the first observation"
         picked = {}
         for k, v in observation.items():
             image = fresh.images.get(k)
-            if image is None or v is not self.frame.images.get(k):
-                picked[k] = v.index_select(0, ids) if any(v is i for i in self.frame.images.values()) else _pick(v, span)
+            if image is None or v is not frame.images.get(k):
+                picked[k] = v.index_select(0, ids) if any(v is i for i in frame.images.values()) else _pick(v, span)
                 continue
             if ended is not None:
                 image.index_copy_(0, torch.searchsorted(ids, ended), v.index_select(0, ended))
