@@ -34,7 +34,7 @@ from visfly_dist.aggregator import Aggregator
 from visfly_dist.aggregator.assembler import empty_observation
 from visfly_dist.client.buffer_pool import BufferPool
 from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
-from visfly_dist.client.frame import SensorFrame
+from visfly_dist.client.frame import SensorFrame, row_span
 from visfly_dist.client.lost_holds import LostHolds
 from visfly_dist.client.noise import SensorNoise
 from visfly_dist.dynamics import Quadrotor, QuadState, load_airframe
@@ -455,7 +455,7 @@ class TensorEnv:
                              "total_s": time.perf_counter() - flight.started}
         if ids is None:
             return StepResult(observation, reward, terminated, truncated, info)
-        span = _span(ids)
+        span = row_span(ids) or ids
         picked = self._group_rows(observation, rows, ids, span, ended)
         # this step's tensors: the env replaces them next step, never writes into them, so a view is safe
         picked_info: dict[str, Any] = {k: _pick(v, span) for k, v in info.items() if k != "terminal_observation"}
@@ -779,12 +779,6 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     """``array``, marked read only (shared by every plain step: nothing may write into it)."""
     array.setflags(write=False)
     return array
-
-
-def _span(ids: torch.Tensor) -> slice | torch.Tensor:
-    """Ascending distinct ``ids`` as a slice where they are consecutive (a group of the trainer's), else themselves."""
-    first, last = int(ids[0]), int(ids[-1])
-    return slice(first, last + 1) if last - first + 1 == len(ids) else ids
 
 
 def _pick(tensor: torch.Tensor, span: slice | torch.Tensor) -> torch.Tensor:

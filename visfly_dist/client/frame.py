@@ -68,15 +68,23 @@ class SensorFrame:
         into a buffer of that pool (its pages already mapped) instead of a fresh tensor.
         """
 
+        span = row_span(index)  # a group's consecutive rows: images copied as one block (~3x index_copy_)
+
         def put(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
             return full.index_copy(0, index, part)  # index_copy: images ~8x faster than out[index] =
 
+        def put_rows(out: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
+            if span is None:
+                return out.index_copy_(0, index, part)
+            out[span].copy_(part)
+            return out
+
         def put_image(full: torch.Tensor, part: torch.Tensor) -> torch.Tensor:
             if in_place:
-                return full.index_copy_(0, index, part)
+                return put_rows(full, part)
             if buffers is None or full.device.type != "cpu":
                 return put(full, part)
-            return buffers.take(tuple(full.shape), full.dtype).copy_(full).index_copy_(0, index, part)
+            return put_rows(buffers.take(tuple(full.shape), full.dtype).copy_(full), part)
 
         return SensorFrame(
             images={k: put_image(v, rows.images[k]) for k, v in self.images.items()},
@@ -86,6 +94,17 @@ class SensorFrame:
             distance=put(self.distance, rows.distance),
             lost=put(self.lost, rows.lost),
         )
+
+
+def row_span(ids: torch.Tensor) -> slice | None:
+    """Row indices ``ids`` as a slice where they are consecutive and ascending (a group of the
+    trainer's), else ``None``."""
+    if not len(ids):
+        return None
+    first, last = int(ids[0]), int(ids[-1])
+    if last - first + 1 != len(ids) or (len(ids) > 2 and not bool((ids.diff() == 1).all())):
+        return None
+    return slice(first, last + 1)
 
 
 def _image_tensor(array: np.ndarray, device: torch.device) -> torch.Tensor:

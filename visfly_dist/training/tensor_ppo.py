@@ -58,6 +58,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.utils import explained_variance
 
 from visfly_dist.client.env_base import DroneEnvBase
+from visfly_dist.client.frame import row_span
 from visfly_dist.training.callbacks import SuccessCallback
 from visfly_dist.training.checkpoints import save_normalization
 from visfly_dist.training.device_stage import DeviceStage
@@ -363,9 +364,10 @@ class TensorPPO:
                                kept_images=len(self.groups) == 1)
         if self.rollout.images:
             env.hold_observations(self.n_steps + 1)  # the rollout's, and the one acted on next
-        # each group's rows of the rollout, on the learner's device (every row, a slice, for one group)
+        # each group's rows of the rollout: a slice (every row for one group; the halves are consecutive,
+        # and a slice stores a group's images as one block), else its rows on the learner's device
         self.group_rows: list[slice | torch.Tensor] = (
-            [slice(None)] if len(self.groups) == 1 else [ids.to(self.device) for ids in self.groups])
+            [slice(None)] if len(self.groups) == 1 else [row_span(ids) or ids.to(self.device) for ids in self.groups])
         self.stage = DeviceStage(self.device)  # a step's observation, rewards and flags: one copy to the device
         self.forward = GraphedForward(self.policy)  # the rollout's policy calls: CUDA graphs on a GPU
         if self.device.type == "cuda":  # the trunk's shapes are fixed: let cuDNN time its algorithms once
