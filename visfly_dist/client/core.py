@@ -376,7 +376,7 @@ class TensorEnv:
         ``ids``: the group's agents (``recv``): only their rows are returned, never the frame's own
         images (which are merged into in place, :meth:`_merge`): an image the task passes through
         is handed out as the group's fresh rows (its reset agents' first views written into them),
-        the other entries as copies.
+        the other entries as their rows (views for a consecutive group, :meth:`_group_rows`).
         ``terminal``: see :meth:`step_tensor` and :meth:`recv`."""
         t0 = time.perf_counter()
         self.sim_time = flight.sim_time  # the task hooks see this group's time
@@ -459,9 +459,8 @@ class TensorEnv:
         picked = self._group_rows(observation, rows, ids, span, ended)
         # this step's tensors: the env replaces them next step, never writes into them, so a view is safe
         picked_info: dict[str, Any] = {k: _pick(v, span) for k, v in info.items() if k != "terminal_observation"}
-        if ended_rows is None:  # no reset: the same rows (an "ended" terminal observation holds none)
-            ended_rows = dict(picked) if terminal == "all" else {k: v[:0] for k, v in picked.items()}
-        picked_info["terminal_observation"] = ended_rows
+        # no reset with terminal "all": the same rows ("ended" always set ended_rows above)
+        picked_info["terminal_observation"] = dict(picked) if ended_rows is None else ended_rows
         return StepResult(picked, _pick(reward, span), _pick(terminated, span), _pick(truncated, span), picked_info)
 
     def _group_rows(self, observation: dict[str, torch.Tensor], fresh: SensorFrame, ids: torch.Tensor,
@@ -514,11 +513,11 @@ class TensorEnv:
         if self.frame is None:
             self._first_reset()
         given = np.asarray(env_ids.cpu() if isinstance(env_ids, torch.Tensor) else env_ids).reshape(-1)
-        if not given.size or not np.issubdtype(given.dtype, np.integer) or given.min() < 0 or given.max() >= self.num_envs:
-            raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {given.tolist()[:10]}")
         members = np.zeros(self.num_envs, dtype=bool)  # on the host: these checks are a few NumPy calls
-        members[given] = True
-        if int(members.sum()) != len(given):
+        in_range = given.size and np.issubdtype(given.dtype, np.integer) and 0 <= given.min() and given.max() < self.num_envs
+        if in_range:
+            members[given] = True
+        if not in_range or int(members.sum()) != len(given):  # out of range, not indices, none or repeated
             raise ConfigError(f"env_ids must be distinct indices in [0, {self.num_envs}), got {given.tolist()[:10]}")
         if any(f.members[given].any() for f in self._in_flight):
             raise ConfigError("send(): some env_ids are still in flight; recv() them first")
