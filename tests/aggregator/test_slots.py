@@ -127,6 +127,8 @@ def test_resets_make_a_slot_due_for_a_swap_every_so_many_and_never_while_it_move
     table.finish_move(0, move, np.zeros((2, 3)), {})
     assert table.note_resets(0, 1, every=3)                                           # due at its next reset after the move
     assert not table.note_resets(1, 2, every=3)                                       # per slot
+    assert not table.note_resets(1, 1, every=3, may_start=False)                      # due, but held back
+    assert table.slots[1].resets == 3 and table.note_resets(1, 1, every=3)            # still due: it swaps at its next reset
 
 
 def test_the_revision_changes_exactly_when_a_slot_changes_worker_or_key_or_a_move_ends():

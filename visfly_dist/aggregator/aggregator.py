@@ -542,8 +542,9 @@ class Aggregator:
             reason = f"forgot its scenes ({reply.error.message})"
         else:
             reason = reply.failure or "failed"
-            others = [w for w in self._pool.live_workers() if w != reply.worker_id]
-            self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
+            if not self._pool.dropped(reply.worker_id):  # once dropped, the requests it left unanswered change nothing
+                others = [w for w in self._pool.live_workers() if w != reply.worker_id]
+                self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
         self._moves.orphan(reply.worker_id, reason)
 
     def _maintain(self) -> dict[str, int]:
@@ -632,19 +633,25 @@ class Aggregator:
         """A load answered: its slot switches (a swap once the new scene's spawn pools are in). What
         a failed load does depends on why it failed."""
         move = job.move
+        self._moves.load_answered(job)
         if reply.message is None:
             self.table.fail_move(job.slot, move)
             if reply.error is not None and reply.error.code == ErrorCode.SCENE_ERROR:
                 self._moves.drop_source(job.slot, move, reply.error)
                 return
             if reply.error is not None and reply.error.code == ErrorCode.OVERLOADED:
-                self._moves.back_off(move.worker, reply.error)
+                self._moves.back_off(move.worker, f"is full ({reply.error.message})")
                 return
             if reply.error is not None and not is_unknown_scene(reply.error):
                 raise RemoteError(move.worker, reply.error.error_type,
                                   f"loading {move.source!r} into slot {job.slot}: {reply.error.message}")
             if reply.failure is not None:  # the load may still end on the worker: unload it when it is back
                 self._moves.mark_stale(move.worker, move.key)
+            if reply.unanswered_bytes and move.worker in self._pool.live_workers() and self._pool.probe(move.worker):
+                # alive and answering: its loads are slower than they were asked for (a loaded host),
+                # not lost; its slots keep serving and it gets no new scene for a while
+                self._moves.back_off(move.worker, f"did not finish loading {move.source!r} in time ({reply.failure})")
+                return
             self._handle_failure(reply)
             return
         if self.table.slots[job.slot].move is not move:  # cancelled (its worker failed meanwhile): not used

@@ -415,6 +415,11 @@ class WorkerPool:
         (reply,) = self.call([(worker_id, Health().to_message())], timeout_s)
         return reply.message is not None
 
+    def dropped(self, worker_id: str) -> bool:
+        """Whether ``worker_id`` is out of use already: banned, or neither alive nor one of our local workers."""
+        self._poll_liveliness()
+        return worker_id in self._banned or (worker_id not in self._alive and worker_id not in self._local)
+
     def drop(self, worker_id: str, reason: str, replace: bool = True, unanswered_bytes: int = 0) -> str | None:
         """Stop using a failing worker until its token reappears.
 

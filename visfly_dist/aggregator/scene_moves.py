@@ -53,7 +53,16 @@ UNLOAD_DELAY_COLLECTS = 2
 """Collects between a switch and the unload of the old key: no request in flight names it then."""
 
 OVERLOADED_BACKOFF_S = (1.0, 30.0)
-"""First and longest wait before a worker that answered ``overloaded`` is given a new scene again."""
+"""First and longest wait before a worker that answered ``overloaded`` (or let a load time out while
+it answers) is given a new scene again."""
+
+SWAP_LOADS_PER_WORKER = 2
+"""Loads one worker may have unanswered when a swap asks it for another. Once steps are served a
+worker makes one scene at a time, niced (:mod:`visfly_dist.scene_worker.loads`): one load running
+and one queued keep it busy. Swaps asked for faster than that (short episodes: a slot is due every
+``swap_every_resets`` resets) would queue more and more loads on it, each waiting behind the others
+until one times out (measured: 256 agents stepped with random actions on 2 cores, a load request
+unanswered for 60 s after 1,400 steps). A due slot held back swaps at a later reset instead."""
 
 __all__ = ["LoadJob", "PendingSwitch", "ReconcileJob", "SceneMoves", "UnloadJob"]
 
@@ -122,6 +131,7 @@ class SceneMoves:
         self.stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
+        self._loading: dict[str, int] = {}  # worker -> loads sent to it and not answered yet
         self._switches: dict[int, PendingSwitch] = {}  # slot -> its loaded swap, waiting for spawn pools
         self._switched = np.zeros(len(table.agent_scene), dtype=bool)  # scene changed under a running episode
         self._next_scene = np.zeros(len(table.agent_scene), dtype=bool)  # next episode starts in an armed swap
@@ -142,23 +152,42 @@ class SceneMoves:
             request = LoadScene(move.key, move.source, self._cameras, self._drone_radius, self._multi_agent).to_message()
             (pending,) = self._pool.send([(move.worker, request)], timeout_s)
             jobs.append(LoadJob(pending, slot, move))
+            self._loading[move.worker] = self._loading.get(move.worker, 0) + 1
         if plan:
             log.info("run %s: loading in the background: %s", self._run_id,
                      [(slot, move.worker, move.reason) for slot, move in plan])
         return jobs
 
     def start_swaps(self, resets: np.ndarray, every: int, generations: dict[str, int]) -> list[LoadJob]:
-        """Count ``resets`` (per slot); a slot due for a swap starts loading the dataset's next source."""
+        """Count ``resets`` (per slot); a slot due for a swap starts loading the dataset's next source,
+        unless its worker has :data:`SWAP_LOADS_PER_WORKER` loads unanswered or backs off (it swaps
+        at a later reset then)."""
         plan = []
-        for slot in np.flatnonzero(resets).tolist():
-            if self._table.note_resets(slot, int(resets[slot]), every):
+        now = time.monotonic()
+        asked = dict(self._loading)  # loads unanswered per worker, this batch's swaps included
+        slots = self._table.slots
+        # the most overdue first: where a worker takes fewer loads than are due, none waits for ever
+        for slot in sorted(np.flatnonzero(resets).tolist(), key=lambda i: -(slots[i].resets + int(resets[i]))):
+            worker = slots[slot].worker
+            may_start = worker is None or (asked.get(worker, 0) < SWAP_LOADS_PER_WORKER
+                                           and self._full.get(worker, (0.0, 0.0))[0] <= now)
+            if self._table.note_resets(slot, int(resets[slot]), every, may_start):
                 source = self._dataset.next_source()
                 move = self._table.plan_swap(slot, source, generations)
                 if move is None:
                     self._table.set_source(slot, source)
                 else:
                     plan.append((slot, move))
+                    asked[move.worker] = asked.get(move.worker, 0) + 1
         return self.send_loads(plan)
+
+    def load_answered(self, job: LoadJob) -> None:
+        """``job``'s load was answered, or failed: it no longer counts against its worker's swaps."""
+        left = self._loading.get(job.move.worker, 0) - 1
+        if left > 0:
+            self._loading[job.move.worker] = left
+        else:
+            self._loading.pop(job.move.worker, None)
 
     def await_pools(self, slot: int, switch: PendingSwitch) -> None:
         """``slot``'s swap has loaded; it switches once :meth:`pool_ready` has seen all its pools."""
@@ -259,8 +288,9 @@ class SceneMoves:
             if slot.incoming is not None and slot.incoming.move.worker == worker:
                 self.mark_stale(worker, slot.incoming.move.key)
         self._switched |= self._table.cut_by_orphaning(worker)
-        for index in self._table.orphan_worker(worker):
-            log.warning("run %s: slot %d left worker %s (%s)", self._run_id, index, worker, reason)
+        left = self._table.orphan_worker(worker)
+        if len(left):
+            log.warning("run %s: %s left worker %s (%s)", self._run_id, _slot_list(left), worker, reason)
 
     def take_stale(self, live: Sequence[str]) -> list[tuple[str, str]]:
         """A worker that dropped off the network and rejoined still holds scenes it no longer serves:
@@ -299,13 +329,13 @@ class SceneMoves:
 
     # ----- workers that are full, sources that cannot load -----------------------------------
 
-    def back_off(self, worker: str, error: RemoteError) -> None:
-        """A worker that is full (``overloaded``) gets no new scene for a while (doubling per refusal)."""
+    def back_off(self, worker: str, why: str) -> None:
+        """A worker that is full (``overloaded``) or slower at loading than it is asked to load gets
+        no new scene for a while (doubling each time)."""
         _, wait = self._full.get(worker, (0.0, OVERLOADED_BACKOFF_S[0] / 2))
         wait = min(2 * wait, OVERLOADED_BACKOFF_S[1])
         self._full[worker] = (time.monotonic() + wait, wait)
-        log.warning("run %s: worker %s is full (%s); no new scene for it for %g s", self._run_id, worker,
-                    error.message, wait)
+        log.warning("run %s: worker %s %s; no new scene for it for %g s", self._run_id, worker, why, wait)
 
     def placeable(self, live: Sequence[str]) -> list[str]:
         """The live workers that may take new scenes now (not backing off after ``overloaded``)."""
@@ -328,3 +358,12 @@ class SceneMoves:
         s = self._table.slots[slot]
         if s.worker is None and s.source == move.source:
             self._table.set_source(slot, self._dataset.next_source())
+
+
+def _slot_list(slots: Sequence[int], shown: int = 8) -> str:
+    """``slot 3`` or ``12 slots (0, 2, 4, ...)``: one log line however many slots a worker held."""
+    slots = [int(s) for s in slots]
+    if len(slots) == 1:
+        return f"slot {slots[0]}"
+    head = ", ".join(map(str, slots[:shown])) + (", ..." if len(slots) > shown else "")
+    return f"{len(slots)} slots ({head})"

@@ -250,12 +250,13 @@ class SlotTable:
         """An orphan takes another source (a swap while it had no worker, or its source was dropped)."""
         self.slots[slot].source = source
 
-    def note_resets(self, slot: int, count: int, every: int) -> bool:
+    def note_resets(self, slot: int, count: int, every: int, may_start: bool = True) -> bool:
         """Count ``count`` episode resets in ``slot``. True when it is due for a swap (``every`` resets
-        so far, and no move in flight); its count starts again then."""
+        so far, no move in flight, and ``may_start``: its worker takes another load now); its count
+        starts again then. A slot due but held back stays due: its next reset asks again."""
         s = self.slots[slot]
         s.resets += count
-        if s.resets >= every and s.move is None:
+        if s.resets >= every and s.move is None and may_start:
             s.resets = 0
             return True
         return False
