@@ -52,11 +52,11 @@ def test_a_swap_load_that_times_out_on_a_live_worker_backs_off_and_the_worker_ke
         while _swapping(agg):
             assert time.monotonic() < deadline
             assert not agg.observe(poses).lost.any()
+        agg.note_resets(np.array([1]))                                      # within the back-off's first second
+        assert _swapping(agg) == []                                         # it backs off: no new load now
         assert agg.table.slots[0].incoming is None and agg.table.slots[0].move is None  # the swap was given up
         assert [agg.slot_source(s) for s in range(2)] == sources
         assert agg.assignment() == {0: "local-0", 1: "local-0"}            # nothing was orphaned
         assert agg.local_worker_pids() == pids                              # nor the worker replaced
-        agg.note_resets(np.array([1]))
-        assert _swapping(agg) == []                                         # it backs off: no new load now
         for _ in range(5):
             assert not agg.observe(poses).lost.any()
