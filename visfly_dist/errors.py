@@ -75,14 +75,20 @@ class LostRequestsError(TransportTimeoutError):
     """
 
     def __init__(self, run_id: str, worker_id: str, request_bytes: int, count: int, timeout_s: float,
-                 cause: str) -> None:
-        super().__init__(
-            f"run {run_id!r}: local worker {worker_id!r} is alive (it answers health probes), but {count} request(s) "
-            f"in a row of {request_bytes} bytes or more got no answer within step_timeout_s={timeout_s:g} "
-            f"(last: {cause}): large requests do not arrive. Replacing workers would not help: the fault is on "
-            "this side, most likely this process's Zenoh shared memory (its /dev/shm/*.zenoh files removed while "
-            "it runs, e.g. by a /dev/shm cleanup or systemd-logind's RemoveIPC). Restart the run, or set "
-            "PoolConfig.shared_memory=False; if the workers are only slower than step_timeout_s, raise it")
+                 cause: str, transport: str = "zenoh") -> None:
+        head = (f"run {run_id!r}: local worker {worker_id!r} is alive (it answers health probes), but {count} "
+                f"request(s) in a row of {request_bytes} bytes or more got no answer within "
+                f"step_timeout_s={timeout_s:g} (last: {cause})")
+        if transport == "channel":  # a socket pair delivers in order: the worker got them and did not answer
+            why = (": they went over the workers' private channels, which answer the probes, so the workers "
+                   "received them and are stuck in such requests or slower than step_timeout_s; raise "
+                   "step_timeout_s if they are only slow")
+        else:
+            why = (": large requests do not arrive. Replacing workers would not help: the fault is on this side, "
+                   "most likely this process's Zenoh shared memory (its /dev/shm/*.zenoh files removed while it "
+                   "runs, e.g. by a /dev/shm cleanup or systemd-logind's RemoveIPC). Restart the run, or set "
+                   "PoolConfig.shared_memory=False; if the workers are only slower than step_timeout_s, raise it")
+        super().__init__(head + why)
         self.worker_id = worker_id
         self.request_bytes = request_bytes
 

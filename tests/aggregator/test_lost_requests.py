@@ -12,7 +12,7 @@ import pytest
 from tests.helpers import REPO
 from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.lost_requests import LostRequests, Verdict
-from visfly_dist.errors import ConfigError
+from visfly_dist.errors import ConfigError, LostRequestsError
 
 # The real cause, as a learner hit it (session 5): this process's Zenoh shared-memory files are
 # removed while it still opens sessions (then by a bug in close(); a /dev/shm cleanup or
@@ -118,3 +118,10 @@ def test_a_worker_that_answers_again_starts_over():
 def test_lost_request_limit_must_be_a_positive_int(limit):
     with pytest.raises(ConfigError, match=f"lost_request_limit={limit!r} must be an int >= 1"):
         PoolConfig(lost_request_limit=limit).validate()
+
+
+def test_the_error_names_the_cause_of_the_transport_the_requests_took():
+    over_zenoh = str(LostRequestsError("r", "local-0", 5600, 3, 2.0, "no reply"))
+    over_channel = str(LostRequestsError("r", "local-0", 313, 3, 2.0, "no reply", transport="channel"))
+    assert "Zenoh shared memory" in over_zenoh and "shared_memory=False" in over_zenoh
+    assert "Zenoh" not in over_channel and "private channels" in over_channel and "step_timeout_s" in over_channel

@@ -438,7 +438,7 @@ class WorkerPool:
             verdict = self._lost.lost_but_alive(worker_id, unanswered_bytes)
             if verdict is Verdict.FAIL:
                 raise LostRequestsError(self.run_id, worker_id, unanswered_bytes, self._lost.count,
-                                        self.config.step_timeout_s, reason)
+                                        self.config.step_timeout_s, reason, self.transport(worker_id))
             if verdict is Verdict.KEEP:
                 log.warning("run %s: worker %s answers a health probe but not a request of %d bytes (%s); "
                             "not killing it (%d such case(s) in a row)", self.run_id, worker_id, unanswered_bytes,
