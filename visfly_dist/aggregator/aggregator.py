@@ -33,6 +33,7 @@ Failure policy (one place, :meth:`_handle_failure`, with what a failed load or s
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from dataclasses import dataclass, field
@@ -519,7 +520,8 @@ class Aggregator:
             return moved
         counts = np.bincount(self.agent_scene[agents], minlength=len(self.table))
         gens = self._pool.generations(self._pool.live_workers())
-        self._background.extend(self._moves.start_swaps(counts, every, gens))
+        loading = collections.Counter(j.move.worker for j in self._background if isinstance(j, LoadJob))
+        self._background.extend(self._moves.start_swaps(counts, every, gens, loading))
         return moved
 
     def take_next_scene(self) -> np.ndarray:
@@ -633,7 +635,6 @@ class Aggregator:
         """A load answered: its slot switches (a swap once the new scene's spawn pools are in). What
         a failed load does depends on why it failed."""
         move = job.move
-        self._moves.load_answered(job)
         if reply.message is None:
             self.table.fail_move(job.slot, move)
             if reply.error is not None and reply.error.code == ErrorCode.SCENE_ERROR:

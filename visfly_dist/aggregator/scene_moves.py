@@ -131,7 +131,6 @@ class SceneMoves:
         self.stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
-        self._loading: dict[str, int] = {}  # worker -> loads sent to it and not answered yet
         self._switches: dict[int, PendingSwitch] = {}  # slot -> its loaded swap, waiting for spawn pools
         self._switched = np.zeros(len(table.agent_scene), dtype=bool)  # scene changed under a running episode
         self._next_scene = np.zeros(len(table.agent_scene), dtype=bool)  # next episode starts in an armed swap
@@ -152,19 +151,19 @@ class SceneMoves:
             request = LoadScene(move.key, move.source, self._cameras, self._drone_radius, self._multi_agent).to_message()
             (pending,) = self._pool.send([(move.worker, request)], timeout_s)
             jobs.append(LoadJob(pending, slot, move))
-            self._loading[move.worker] = self._loading.get(move.worker, 0) + 1
         if plan:
             log.info("run %s: loading in the background: %s", self._run_id,
                      [(slot, move.worker, move.reason) for slot, move in plan])
         return jobs
 
-    def start_swaps(self, resets: np.ndarray, every: int, generations: dict[str, int]) -> list[LoadJob]:
+    def start_swaps(self, resets: np.ndarray, every: int, generations: dict[str, int],
+                    loading: dict[str, int]) -> list[LoadJob]:
         """Count ``resets`` (per slot); a slot due for a swap starts loading the dataset's next source,
-        unless its worker has :data:`SWAP_LOADS_PER_WORKER` loads unanswered or backs off (it swaps
-        at a later reset then)."""
+        unless its worker has :data:`SWAP_LOADS_PER_WORKER` loads not taken in yet (``loading``, per
+        worker) or backs off (it swaps at a later reset then)."""
         plan = []
         now = time.monotonic()
-        asked = dict(self._loading)  # loads unanswered per worker, this batch's swaps included
+        asked = dict(loading)  # this batch's swaps included
         slots = self._table.slots
         # the most overdue first: where a worker takes fewer loads than are due, none waits for ever
         for slot in sorted(np.flatnonzero(resets).tolist(), key=lambda i: -(slots[i].resets + int(resets[i]))):
@@ -180,14 +179,6 @@ class SceneMoves:
                     plan.append((slot, move))
                     asked[move.worker] = asked.get(move.worker, 0) + 1
         return self.send_loads(plan)
-
-    def load_answered(self, job: LoadJob) -> None:
-        """``job``'s load was answered, or failed: it no longer counts against its worker's swaps."""
-        left = self._loading.get(job.move.worker, 0) - 1
-        if left > 0:
-            self._loading[job.move.worker] = left
-        else:
-            self._loading.pop(job.move.worker, None)
 
     def await_pools(self, slot: int, switch: PendingSwitch) -> None:
         """``slot``'s swap has loaded; it switches once :meth:`pool_ready` has seen all its pools."""
