@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -156,17 +156,24 @@ class SceneMoves:
                      [(slot, move.worker, move.reason) for slot, move in plan])
         return jobs
 
-    def start_swaps(self, resets: np.ndarray, every: int, generations: dict[str, int],
-                    loading: dict[str, int]) -> list[LoadJob]:
+    def start_swaps(self, resets: np.ndarray, every: int,
+                    workers: Callable[[], tuple[dict[str, int], dict[str, int]]]) -> list[LoadJob]:
         """Count ``resets`` (per slot); a slot due for a swap starts loading the dataset's next source,
-        unless its worker has :data:`SWAP_LOADS_PER_WORKER` loads not taken in yet (``loading``, per
-        worker) or backs off (it swaps at a later reset then)."""
+        unless its worker has :data:`SWAP_LOADS_PER_WORKER` loads not taken in yet or backs off (it
+        swaps at a later reset then). ``workers`` gives the live workers' generations and their loads
+        in flight; it is asked only when some slot is due (most resets: none is)."""
+        slots = self._table.slots
+        counted = np.flatnonzero(resets).tolist()
+        if not any(slots[i].move is None and slots[i].resets + int(resets[i]) >= every for i in counted):
+            for slot in counted:
+                self._table.note_resets(slot, int(resets[slot]), every)  # none is due: only counted
+            return []
+        generations, loading = workers()
         plan = []
         now = time.monotonic()
         asked = dict(loading)  # this batch's swaps included
-        slots = self._table.slots
         # the most overdue first: where a worker takes fewer loads than are due, none waits for ever
-        for slot in sorted(np.flatnonzero(resets).tolist(), key=lambda i: -(slots[i].resets + int(resets[i]))):
+        for slot in sorted(counted, key=lambda i: -(slots[i].resets + int(resets[i]))):
             worker = slots[slot].worker
             may_start = worker is None or (asked.get(worker, 0) < SWAP_LOADS_PER_WORKER
                                            and self._full.get(worker, (0.0, 0.0))[0] <= now)

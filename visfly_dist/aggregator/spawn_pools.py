@@ -12,6 +12,7 @@ keeps the pools and says what is due.
 
 from __future__ import annotations
 
+import functools
 import math
 import zlib
 from dataclasses import dataclass
@@ -58,9 +59,24 @@ class SpawnJob:
 
 
 def spawn_spec(distribution: str, a: Sequence[float], b: Sequence[float], clearance: float) -> SpawnSpec:
-    """The checked :class:`SpawnSpec` of a spawn request; ConfigError naming every problem."""
+    """The checked :class:`SpawnSpec` of a spawn request; ConfigError naming every problem.
+
+    Tasks ask with the same tuples on every reset: those are checked once (a request that fails is
+    not remembered, so it fails each time)."""
+    if type(a) is tuple and type(b) is tuple:
+        try:
+            return _remembered_spec(distribution, a, b, clearance)
+        except TypeError:  # something in the tuples is not hashable
+            pass
+    return _spec(distribution, a, b, clearance)
+
+
+def _spec(distribution: str, a: Sequence[float], b: Sequence[float], clearance: float) -> SpawnSpec:
     plain = _plain_spec(distribution, a, b, clearance)
     return plain if plain is not None else _checked_spec(distribution, a, b, clearance)
+
+
+_remembered_spec = functools.lru_cache(maxsize=64)(_spec)
 
 
 _REAL = (float, int, np.floating, np.integer)

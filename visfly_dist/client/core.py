@@ -60,9 +60,12 @@ class Spawn:
 
     @classmethod
     def around(cls, center: Sequence[float], half_width: Sequence[float], clearance: float = 0.5) -> "Spawn":
-        """Uniform in ``center ± half_width``."""
-        c, h = np.asarray(center, float), np.asarray(half_width, float)
-        return cls("uniform", tuple(c - h), tuple(c + h), clearance)
+        """Uniform in ``center ± half_width`` (plain floats: tasks ask on every reset)."""
+        c, h = [float(x) for x in center], [float(x) for x in half_width]
+        if len(c) != 3 or len(h) != 3:
+            raise ConfigError(f"center={center!r} and half_width={half_width!r} must be 3 numbers each")
+        return cls("uniform", (c[0] - h[0], c[1] - h[1], c[2] - h[2]), (c[0] + h[0], c[1] + h[1], c[2] + h[2]),
+                   clearance)
 
 
 @dataclass
