@@ -199,3 +199,14 @@ def test_a_worker_lost_mid_takeover_cuts_only_the_agents_not_yet_moved():
     assert table.cut_by_orphaning("a").tolist() == [True, False, False, False]  # slot 1: nobody moved, nobody cut
     table.orphan_worker("a")
     assert [s.source for s in table.slots] == ["new0", "old1"] and not table.armed.any() and not table.in_incoming.any()
+
+
+def test_a_start_up_plan_is_logged_as_one_short_line_per_worker_and_reason():
+    from visfly_dist.aggregator.scene_moves import _plan_summary
+    from visfly_dist.aggregator.slots import Move
+
+    plan = [(i, Move(f"local-{i % 2}", f"s{i}v1", "gen:garage", "place", 1)) for i in range(256)]
+    plan.append((7, Move("local-1", "s7v2", "gen:garage", "swap", 1)))
+    summary = _plan_summary(plan)
+    assert summary == ("128 slots (0, 2, 4, 6, 8, 10, 12, 14, ...) on local-0 (place); "
+                       "128 slots (1, 3, 5, 7, 9, 11, 13, 15, ...) on local-1 (place); slot 7 on local-1 (swap)")

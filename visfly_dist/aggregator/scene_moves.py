@@ -152,8 +152,7 @@ class SceneMoves:
             (pending,) = self._pool.send([(move.worker, request)], timeout_s)
             jobs.append(LoadJob(pending, slot, move))
         if plan:
-            log.info("run %s: loading in the background: %s", self._run_id,
-                     [(slot, move.worker, move.reason) for slot, move in plan])
+            log.info("run %s: loading in the background: %s", self._run_id, _plan_summary(plan))
         return jobs
 
     def start_swaps(self, resets: np.ndarray, every: int,
@@ -356,6 +355,15 @@ class SceneMoves:
         s = self._table.slots[slot]
         if s.worker is None and s.source == move.source:
             self._table.set_source(slot, self._dataset.next_source())
+
+
+def _plan_summary(plan: Sequence[tuple[int, Move]]) -> str:
+    """``slot 3 on local-0 (swap)``, or per worker and reason ``24 slots (0, 2, 4, ...) on local-0
+    (place)``: one short line however many scenes a start-up places."""
+    groups: dict[tuple[str, str], list[int]] = {}
+    for slot, move in plan:
+        groups.setdefault((move.worker, move.reason), []).append(slot)
+    return "; ".join(f"{_slot_list(slots)} on {worker} ({reason})" for (worker, reason), slots in groups.items())
 
 
 def _slot_list(slots: Sequence[int], shown: int = 8) -> str:
