@@ -88,3 +88,11 @@ def test_shuffled_passes_cover_every_source():
     first, second = ds.take(5), ds.take(5)
     assert sorted(first) == sorted(sources) and sorted(second) == sorted(sources)
     assert SceneDataset(sources, (), shuffle=False, seed=1).take(5) == list(sources)
+
+
+def test_a_log_dir_that_is_a_file_is_refused(tmp_path):
+    taken = tmp_path / "taken"
+    taken.write_text("not a folder")
+    with pytest.raises(ConfigError, match="log_dir=.*must be a folder"):
+        PoolConfig(log_dir=str(taken)).validate()
+    PoolConfig(log_dir=str(tmp_path / "new" / "workers")).validate()  # made when the pool opens

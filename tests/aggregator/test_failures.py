@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import time
@@ -18,6 +19,15 @@ def _victim(agg):
     worker = agg.workers[0]
     slots = [s for s, w in agg.assignment().items() if w == worker]
     return worker, agg.local_worker_pids()[worker], np.isin(agg.agent_scene, slots)
+
+
+def _exited(pid: int) -> bool:
+    """The process ended (gone, or a zombie its parent, this process, has not reaped yet)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
 
 
 def _observe_until(agg, poses, condition, timeout=60.0):
@@ -56,6 +66,25 @@ def test_sigkill_moves_scenes_in_the_background_then_no_workers_left():
         # the step that lost the last worker serves stale data, every agent marked lost; the next one waits
         # out the outage limit and raises: no step is taken as if data had come
         assert len(served) <= 1 and all(o.lost.all() for o in served), [o.lost.tolist() for o in served]
+
+
+def test_a_dead_worker_s_log_is_named_when_it_is_replaced_and_kept_after_the_run(tmp_path, caplog):
+    logs = tmp_path / "run" / "workers"  # made by the pool, as a training run's folder is
+    with make_aggregator(pool={"log_dir": str(logs)}) as agg:
+        poses = spawn_poses(agg)
+        agg.observe(poses)
+        victim, pid, _ = _victim(agg)
+        os.kill(pid, signal.SIGKILL)
+        assert wait_for(lambda: _exited(pid), timeout=10.0)
+        with caplog.at_level(logging.WARNING, logger="visfly_dist.aggregator.pool"):
+            # dropped when its request gets no reply, or replaced once its liveliness token is gone
+            told = lambda: [r.getMessage() for r in caplog.records if "it exited" in r.getMessage()]  # noqa: E731
+            assert wait_for(lambda: agg.observe(poses) is not None and told(), timeout=30.0), caplog.text
+        message = told()[0]
+        assert f"{victim}" in message and f"it exited (-9); the end of its log {logs / f'{victim}.log'}" in message
+        assert "INFO loaded scene" in message  # the end of its log, quoted
+    kept = sorted(p.name for p in logs.iterdir())
+    assert f"{victim}.log" in kept and len(kept) == 3, kept  # both first workers' and the replacement's
 
 
 def test_hung_worker_is_killed_replaced_and_rebalanced():

@@ -53,6 +53,9 @@ def test_train_writes_config_checkpoints_logs_and_curve(trained_run: Path) -> No
     assert [int(r["timesteps"]) for r in rows] == [128, 256, 384, 512]
     assert all(0.0 <= float(r["success_rate"]) <= 1.0 and float(r["mean_length"]) <= 20 for r in rows)
     assert (trained_run / "success_curve.png").stat().st_size > 1000
+    # the local workers' logs stay with the run
+    logs = sorted((trained_run / "workers").glob("*.log"))
+    assert [p.name for p in logs] == ["local-0.log"] and "worker local-0 ready on run" in logs[0].read_text()
 
 
 def test_eval_reports_both_modes_and_writes_a_gif_of_the_first_episode(trained_run: Path, tmp_path: Path) -> None:

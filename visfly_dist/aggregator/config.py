@@ -77,6 +77,9 @@ class PoolConfig:
         zenoh_config: a Zenoh JSON5 config file (TLS, user/password; see ``deploy/zenoh``) for the
             aggregator's session and its local workers; ``None`` uses ``$ZENOH_CONFIG`` when set.
             visfly-dist's own settings (mode, endpoints, shared memory, lease) override the file.
+        log_dir: folder of the local workers' logs (``local-0.log``, ...), made if missing and kept
+            after the run (``visfly-dist train`` uses the run folder's ``workers/``); ``None``: a
+            temporary folder removed when the env closes.
     """
 
     run_id: str | None = None
@@ -96,6 +99,7 @@ class PoolConfig:
     outage_limit_s: float = 120.0
     lost_request_limit: int = 3
     zenoh_config: str | None = None
+    log_dir: str | None = None
 
     def __post_init__(self) -> None:
         self.connect = tuple(self.connect)
@@ -137,6 +141,9 @@ class PoolConfig:
             out.append(f"lost_request_limit={self.lost_request_limit!r} must be an int >= 1")
         if not isinstance(self.lease_ms, int) or not 200 <= self.lease_ms <= 600_000:
             out.append(f"lease_ms={self.lease_ms!r} must be an int in [200, 600000]")
+        if self.log_dir is not None and (not isinstance(self.log_dir, str) or os.path.exists(self.log_dir)
+                                         and not os.path.isdir(self.log_dir)):
+            out.append(f"log_dir={self.log_dir!r} must be a folder (made if missing) or None")
         out += self._zenoh_config_problems()
         return out
 

@@ -50,7 +50,7 @@ import zenoh
 from visfly_dist.aggregator.config import PoolConfig
 from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_workers
 from visfly_dist.aggregator.lost_requests import LostRequests, Verdict
-from visfly_dist.errors import LostRequestsError, NoWorkersError, ProtocolError, RemoteError
+from visfly_dist.errors import ConfigError, LostRequestsError, NoWorkersError, ProtocolError, RemoteError
 from visfly_dist.host import usable_cores
 from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
@@ -221,7 +221,7 @@ class WorkerPool:
             self._subscriber = session.liveliness().declare_subscriber(
                 keys.workers_alive_pattern(self.run_id), zenoh.handlers.FifoChannel(LIVELINESS_QUEUE), history=True)
             if self.config.num_local_workers:
-                self._log_dir = tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")
+                self._log_dir = self._open_log_dir()
                 self._launch = WorkerLaunchSpec(
                     run_id=self.run_id, connect=workers_connect, scene_roots=self.config.scene_roots,
                     backend=self.config.backend, shared_memory=self.config.shared_memory,
@@ -250,9 +250,19 @@ class WorkerPool:
         if self._session is not None:
             self._session.close()
             self._session = None
-        if self._log_dir is not None:
+        if self._log_dir is not None and self.config.log_dir is None:  # a folder of the user's stays
             shutil.rmtree(self._log_dir, ignore_errors=True)
-            self._log_dir = None
+        self._log_dir = None
+
+    def _open_log_dir(self) -> str:
+        """The local workers' log folder: the configured one (made if missing), else a temporary one."""
+        if self.config.log_dir is None:
+            return tempfile.mkdtemp(prefix=f"visfly-{self.run_id}-")
+        try:
+            os.makedirs(self.config.log_dir, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"pool log_dir={self.config.log_dir!r}: cannot make the workers' log folder ({exc})") from exc
+        return self.config.log_dir
 
     # ----- liveliness ------------------------------------------------------------------------
 
@@ -379,12 +389,20 @@ class WorkerPool:
         now = time.monotonic()
         for wid, worker in list(self._local.items()):
             if not worker.running() and now - worker.started_at >= min_age_s:
-                log.warning("run %s: local worker %s exited (%s); starting a replacement", self.run_id, wid,
-                            worker.process.returncode)
+                log.warning("run %s: local worker %s left; starting a replacement%s", self.run_id, wid,
+                            self._exit_note(wid))
                 del self._local[wid]
                 self._close_channel(wid)
                 out.append(self.spawn_local())
         return out
+
+    def _exit_note(self, worker_id: str) -> str:
+        """``; it exited (CODE); the end of its log PATH: ...`` for a local worker whose process
+        ended, else nothing: where to read why it died (the log is kept with a ``log_dir``)."""
+        worker = self._local.get(worker_id)
+        if worker is None or worker.running():
+            return ""
+        return f"; it exited ({worker.process.returncode}); the end of its log {worker.log_path}: {worker.log_tail(400)!r}"
 
     def _close_channel(self, worker_id: str) -> None:
         channel = self._channels.pop(worker_id, None)
@@ -446,7 +464,7 @@ class WorkerPool:
                 return None
             reason += f"; it answers health probes but not requests of {unanswered_bytes} bytes, which others answer"
         self._lost.forget(worker_id)
-        log.warning("run %s: dropping worker %s: %s", self.run_id, worker_id, reason)
+        log.warning("run %s: dropping worker %s: %s%s", self.run_id, worker_id, reason, self._exit_note(worker_id))
         self._poll_liveliness()
         if worker_id in self._alive:  # a DELETE already seen needs no ban (and must not outlive a restart)
             self._banned.add(worker_id)

@@ -49,9 +49,10 @@ from visfly_dist.training.host_plan import check_device
 from visfly_dist.training.run import TrainResult, env_kwargs, write_config
 
 
-def build_diff_env(cfg: TrainConfig) -> DroneEnvBase:
-    """The task's env with gradients through dynamics and rewards (``requires_grad=True``)."""
-    return make_env(cfg.task, num_envs=cfg.num_envs, requires_grad=True, **env_kwargs(cfg))
+def build_diff_env(cfg: TrainConfig, worker_logs: Path | None = None) -> DroneEnvBase:
+    """The task's env with gradients through dynamics and rewards (``requires_grad=True``);
+    ``worker_logs``: see :func:`~visfly_dist.training.run.env_kwargs`."""
+    return make_env(cfg.task, num_envs=cfg.num_envs, requires_grad=True, **env_kwargs(cfg, worker_logs))
 
 
 def first_observation(env: DroneEnvBase) -> dict[str, torch.Tensor]:
@@ -94,7 +95,7 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)
-    env = build_diff_env(cfg)
+    env = build_diff_env(cfg, run_dir / "workers")
     interrupted = False
     try:
         run_dir.mkdir(parents=True, exist_ok=True)

@@ -57,9 +57,10 @@ from visfly_dist.training.tensor_ppo import TensorPPO
 from visfly_dist.training.training_video import VideoCallback, video_for
 
 
-def build_env(cfg: TrainConfig) -> VecEnv:
-    """``make_env`` wrapped in VecMonitor (episode stats) and, with ``cfg.normalize``, VecNormalize."""
-    env: VecEnv = VecMonitor(make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)))
+def build_env(cfg: TrainConfig, worker_logs: Path | None = None) -> VecEnv:
+    """``make_env`` wrapped in VecMonitor (episode stats) and, with ``cfg.normalize``, VecNormalize;
+    ``worker_logs``: see :func:`~visfly_dist.training.run.env_kwargs`."""
+    env: VecEnv = VecMonitor(make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg, worker_logs)))
     if cfg.normalize:
         assert isinstance(env.observation_space, spaces.Dict)  # every task's
         keys = vector_keys(env.observation_space)
@@ -146,7 +147,8 @@ def train(cfg: TrainConfig) -> TrainResult:
         print(f"starting the env: {cfg.num_envs} agents, their scenes loaded by {cfg.workers} local worker(s)"
               if cfg.workers else f"starting the env: {cfg.num_envs} agents, scenes loaded by remote workers", flush=True)
     started = time.monotonic()
-    env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg)) if tensor else build_env(cfg)
+    logs = run_dir / "workers"  # kept with the run: a worker that failed can be read about afterwards
+    env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg, logs)) if tensor else build_env(cfg, logs)
     if cfg.progress:
         print(f"env ready in {time.monotonic() - started:.1f} s", flush=True)
     interrupted = False

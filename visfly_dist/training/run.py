@@ -22,11 +22,13 @@ from visfly_dist.tasks import task_class
 from visfly_dist.training.config import TrainConfig
 
 
-def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
+def env_kwargs(cfg: TrainConfig, worker_logs: Path | None = None) -> dict[str, Any]:
     """Keyword arguments of ``make_env`` for this run: seed, ``--set`` overrides, pool settings.
 
     ``--set`` values arrive as JSON: ``cameras`` entries given as maps become ``CameraSpec``s, and
     a ``pool`` map changes fields of the task's default ``PoolConfig`` (as ``--workers`` etc. do).
+    ``worker_logs``: where local workers write their logs, kept (a training run's ``workers/``),
+    unless ``--set pool=...`` names a ``log_dir`` of its own.
 
     Raises:
         ConfigError: unknown task or pool field.
@@ -39,6 +41,8 @@ def env_kwargs(cfg: TrainConfig) -> dict[str, Any]:
              "connect": tuple(cfg.connect) or None, "run_id": cfg.run_id,
              "backend": cfg.backend, "scene_roots": tuple(cfg.scene_roots) or None}
     pool_changes.update({k: v for k, v in flags.items() if v is not None})
+    if worker_logs is not None:
+        pool_changes.setdefault("log_dir", str(worker_logs))
     kwargs: dict[str, Any] = {"seed": cfg.seed, **overrides}
     if isinstance(kwargs.get("cameras"), list):
         kwargs["cameras"] = tuple(CameraSpec.from_dict(c) if isinstance(c, dict) else c for c in kwargs["cameras"])

@@ -121,7 +121,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir = Path(cfg.out)
-    env = build_diff_env(cfg)
+    env = build_diff_env(cfg, run_dir / "workers")
     interrupted = False
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
