@@ -112,6 +112,16 @@ def test_apply_host_plan_fills_the_config_and_records_the_plan() -> None:
     assert sb3.overlap is None and sb3.resolved().overlap is True   # SB3's lagged overlap keeps its own default
 
 
+def test_a_bad_size_fails_before_the_plan_chooses_or_prints_anything() -> None:
+    lines: list[str] = []
+    with pytest.raises(ConfigError) as info:
+        apply_host_plan(TrainConfig(task="navigation", algo="ppo", num_envs=-3, n_steps=0), LAPTOP, log=lines.append)
+    assert str(info.value) == "invalid training config: num_envs=-3 must be an int >= 1; n_steps=0 must be an int >= 1"
+    assert lines == []  # nothing derived from the bad sizes (a batch size of "512 x 1" for -3 envs) is said
+    bad = TrainConfig(task="navigation", algo="ppo", num_envs=-3, n_steps=4, batch_size=64).resolved()
+    assert not any("batch_size" in p for p in bad.problems())  # only the given mistake, not what follows from it
+
+
 def test_cgroup_quota_v2_and_v1(tmp_path: Path) -> None:
     proc = tmp_path / "cgroup"
     (tmp_path / "fs" / "job").mkdir(parents=True)

@@ -11,12 +11,20 @@ import json
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 from visfly_dist.errors import ConfigError
 
 BACKBONES = ("visfly-cnn", "resnet-tiny", "mobilenet-tiny", "efficientnet-tiny")
 PPO_ALGOS = ("ppo", "sb3-ppo")
+_SIZES = (("timesteps", 1), ("num_envs", 1), ("n_steps", 1), ("batch_size", 2), ("video_every", 0))
+"""The sizes the host plan may choose, and their lowest values."""
+
+
+def _int_at_least(value: Any, low: int) -> TypeGuard[int]:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
 ALGOS = (*PPO_ALGOS, "bptt", "shac")
 
 _BASE: dict[str, Any] = dict(algo="sb3-ppo", num_envs=16, timesteps=150_000, n_steps=128, batch_size=512,
@@ -218,12 +226,18 @@ class TrainConfig:
             cfg.out = str(Path("runs") / f"{self.task}-{time.strftime('%Y%m%d-%H%M%S')}")
         return cfg
 
+    def size_problems(self) -> list[str]:
+        """Problems with the sizes given (those left ``None`` are the host plan's to choose): checked
+        before the plan reads them, so a bad flag fails before any choice is made or printed."""
+        return [f"{name}={value!r} must be an int >= {low}" for name, low in _SIZES
+                if (value := getattr(self, name)) is not None and not _int_at_least(value, low)]
+
     def problems(self) -> list[str]:
         """Every problem with this (resolved) config, as messages (empty when valid)."""
         out: list[str] = []
-        for name, low in (("timesteps", 1), ("num_envs", 1), ("n_steps", 1), ("batch_size", 2), ("n_epochs", 1), ("checkpoint_every", 0), ("video_every", 0), ("threads", 1)):  # noqa: E501
+        for name, low in (*_SIZES, ("n_epochs", 1), ("checkpoint_every", 0), ("threads", 1)):
             value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            if not _int_at_least(value, low):
                 out.append(f"{name}={value!r} must be an int >= {low}")
         if self.worker_threads is not None and (not isinstance(self.worker_threads, int) or self.worker_threads < 1):
             out.append(f"worker_threads={self.worker_threads!r} must be an int >= 1")
@@ -232,7 +246,7 @@ class TrainConfig:
         if self.update_threads is not None and (not isinstance(self.update_threads, int)
                                                 or isinstance(self.update_threads, bool) or self.update_threads < 1):
             out.append(f"update_threads={self.update_threads!r} must be an int >= 1 or None (timed choice)")
-        if isinstance(self.n_steps, int) and isinstance(self.num_envs, int) and isinstance(self.batch_size, int):
+        if _int_at_least(self.n_steps, 1) and _int_at_least(self.num_envs, 1) and _int_at_least(self.batch_size, 2):
             if self.batch_size > self.n_steps * self.num_envs:
                 out.append(
                     f"batch_size={self.batch_size} must be <= n_steps * num_envs = {self.n_steps * self.num_envs}; "

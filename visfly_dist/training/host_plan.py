@@ -236,6 +236,9 @@ def apply_host_plan(cfg: "TrainConfig", facts: HostFacts | None = None, log: Any
     from visfly_dist.tasks import task_class
     from visfly_dist.training.config import task_defaults
 
+    given = cfg.size_problems()
+    if given:
+        raise ConfigError("invalid training config: " + "; ".join(given))
     device = check_device(cfg.device)
     facts = facts or HostFacts.probe()
     base = task_defaults(cfg.task, cfg.algo)
