@@ -24,6 +24,8 @@ def check_row(row: dict, timesteps: int) -> None:
     assert row["env_steps_per_s"] > 0 and row["rollout_env_steps_per_s"] >= row["env_steps_per_s"]
     assert 0 < row["rollout_s"] <= row["loop_s"] and 0 < row["update_s"] <= row["loop_s"]
     assert row["learner_busy"] > 0
+    # start-up (env, workers, scenes, model) ends where training begins; the final save and shut-down are apart
+    assert row["startup_s"] > 0.5 and row["teardown_s"] > 0
     # the learner's figure is its collecting thread's part and the other threads' (Zenoh's) part
     assert row["learner_cpu_main_s_per_1k"] > 0 and row["learner_cpu_threads_s_per_1k"] > -1e-3
     assert row["learner_cpu_main_s_per_1k"] + row["learner_cpu_threads_s_per_1k"] == pytest.approx(

@@ -17,6 +17,9 @@ budget, the seed and a temporary run folder changed; no checkpoints). It reports
   part taken out. It is split into ``learner_cpu_main_s_per_1k`` (the trainer's own thread: the env
   core, the aggregator, the trainer's bookkeeping) and ``learner_cpu_threads_s_per_1k`` (every other
   thread of the process: Zenoh's network threads, torch's intra-op pool).
+* ``startup_s``: from the ``train()`` call to the trainer's first ``learn`` (workers, scenes, the
+  env and the model); ``teardown_s``: from the end of ``learn`` to the end of the call (the final
+  save, the workers stopped).
 
 Runs follow the host plan (:mod:`visfly_dist.training.host_plan`) unless ``--device``,
 ``--num-envs`` or ``--workers`` say otherwise; ``--algo ppo sb3-ppo`` runs both trainers in one go
@@ -157,6 +160,8 @@ class LoopClock:
     rollout_cpu_s: float = 0.0
     rollout_main_cpu_s: float = 0.0  # the collecting thread's own share of rollout_cpu_s
     policy_cpu_s: float = 0.0
+    learn_began: float | None = None  # perf_counter when the first trainer's learn began (start-up before it)
+    learn_ended: float | None = None  # and when the last one returned (the final save and shut-down after it)
     _depth: int = field(default=0, repr=False)
 
 
@@ -175,8 +180,18 @@ def watch_trainers(snapshot: Callable[[], CpuSnapshot],
 
     clock = LoopClock()
     learn, collect, update = OnPolicyAlgorithm.learn, OnPolicyAlgorithm.collect_rollouts, PPO.train
-    tensor_collect = TensorPPO.collect
+    tensor_collect, tensor_learn = TensorPPO.collect, TensorPPO.learn
     forward, predict_values = ActorCriticPolicy.forward, ActorCriticPolicy.predict_values
+
+    def learn_span(method: Callable[..., Any]) -> Callable[..., Any]:
+        def timed(self: Any, *args: Any, **kwargs: Any) -> Any:
+            if clock.learn_began is None:
+                clock.learn_began = time.perf_counter()
+            try:
+                return method(self, *args, **kwargs)
+            finally:
+                clock.learn_ended = time.perf_counter()
+        return timed
 
     def timed_learn(self: Any, *args: Any, **kwargs: Any) -> Any:
         clock._depth += 1
@@ -222,8 +237,10 @@ def watch_trainers(snapshot: Callable[[], CpuSnapshot],
     saved = [(OnPolicyAlgorithm, "learn", learn), (OnPolicyAlgorithm, "collect_rollouts", collect), (PPO, "train", update),
              (TensorPPO, "collect", tensor_collect), (ActorCriticPolicy, "forward", forward),
              (ActorCriticPolicy, "predict_values", predict_values)]
-    patches = [(OnPolicyAlgorithm, "learn", timed_learn), (OnPolicyAlgorithm, "collect_rollouts", cpu_of(collect, True)),
-               (PPO, "train", timed_update), (TensorPPO, "collect", cpu_of(tensor_collect, False)),
+    saved.append((TensorPPO, "learn", tensor_learn))
+    patches = [(OnPolicyAlgorithm, "learn", learn_span(timed_learn)),
+               (OnPolicyAlgorithm, "collect_rollouts", cpu_of(collect, True)), (PPO, "train", timed_update),
+               (TensorPPO, "collect", cpu_of(tensor_collect, False)), (TensorPPO, "learn", learn_span(tensor_learn)),
                (ActorCriticPolicy, "forward", policy_cpu(forward)),
                (ActorCriticPolicy, "predict_values", policy_cpu(predict_values))]
     for owner, name, replacement in patches:
@@ -261,7 +278,7 @@ def train_once(task: str, timesteps: int, delay_ms: float | None = None, workers
 
     Returns:
         The row: ``task, delay_ms, workers, timesteps, env_steps_per_s, rollout_env_steps_per_s,
-        loop_s, rollout_s, update_s, update_share, learner_busy, workers_busy, startup_s,
+        loop_s, rollout_s, update_s, update_share, learner_busy, workers_busy, startup_s, teardown_s,
         success_rate, timing, overlap`` (whether the run trained with ``--overlap``).
     """
     import torch
@@ -329,7 +346,9 @@ def _row(task: str, delay_ms: float | None, workers: int | None, result: Any, cl
         "loop_s": round(loop_s, 2), "rollout_s": round(rollout_s, 2), "update_s": round(update_s, 2),
         "update_share": round(update_s / loop_s, 3),
         **busy_shares(start, end),
-        "startup_s": round((after.wall - before.wall) - loop_s, 2),
+        # from the call to the first learn (env, workers, scenes, model); the final save and shut-down are apart
+        "startup_s": round((clock.learn_began or after.wall) - before.wall - (0.0 if clock.learn_began else loop_s), 2),
+        "teardown_s": round(after.wall - clock.learn_ended, 2) if clock.learn_ended else None,
         "success_rate": summary.get("success_rate"),
         "learner_cpu_s_per_1k": round((clock.rollout_cpu_s - clock.policy_cpu_s) * per_1k, 4),
         "learner_cpu_main_s_per_1k": round((clock.rollout_main_cpu_s - clock.policy_cpu_s) * per_1k, 4),
