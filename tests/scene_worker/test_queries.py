@@ -173,6 +173,21 @@ def test_a_closed_room_facing_inwards_is_free_space_inside():
     np.testing.assert_allclose(r.distance, [2.0, 0.5], atol=1e-6)
 
 
+@pytest.mark.parametrize("shift", [0.0, 5000.0, -120_000.0])
+def test_inside_holds_kilometres_from_the_origin(shift):
+    """A georeferenced scene (kilometres out) and a scene spanning kilometres (a mesh in millimetres):
+    float32 parity rays still step past each surface, so a solid's inside is inside."""
+    near, far = trimesh.creation.box((1.0, 1.0, 2.0)), trimesh.creation.box((1.0, 1.0, 2.0))
+    near.apply_translation((shift + 5.0, shift, 1.0))
+    far.apply_translation((shift + 8000.0, shift + 5000.0, 1.0))  # 9 km from the other box
+    objects = [SceneObject("near", 1, near), SceneObject("far", 2, far)]
+    q = ObstacleQueries(Scene("geo", objects, np.array([[0, -1, 0], [8001, 5001, 3]]) + shift), drone_radius=RADIUS)
+    points = np.array([[5.0, 0.0, 1.0], [8000.0, 5000.0, 1.0], [8000.2, 5000.3, 0.4], [5.0, 0.0, 2.6]]) + [shift, shift, 0]
+    r = q.query(points, 5.0)
+    np.testing.assert_array_equal(r.inside, [True, True, True, False])
+    np.testing.assert_allclose(q.distance(points), [-0.5, -0.5, -0.2, 0.6], atol=1e-3)
+
+
 @pytest.mark.parametrize("backend", ["native", "fcl"])
 def test_several_scenes_in_one_call_answer_as_each_scene_alone(backend):
     """query_scenes (a worker's scenes together, one native call) equals each scene's own query,

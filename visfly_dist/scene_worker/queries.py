@@ -152,8 +152,11 @@ class ObstacleQueries:
         np.maximum.at(high, self._face_component, triangles.max(axis=1))
         self._boxes = (low, high)
         self._max_depth = float(((high - low).min(axis=1) / 2).max())
+        # float32 rays in a frame centred on the solids: a scene far from the origin (a georeferenced
+        # export, kilometres out) keeps the precision a parity ray needs to step past a surface
+        self._parity_origin = (triangles.reshape(-1, 3).min(axis=0) + triangles.reshape(-1, 3).max(axis=0)) / 2
         self._embree = rtcore_scene.EmbreeScene()
-        TriangleMesh(self._embree, triangles.astype(np.float32))
+        TriangleMesh(self._embree, (triangles - self._parity_origin).astype(np.float32))
         self._directions = (PARITY_DIRECTIONS / np.linalg.norm(PARITY_DIRECTIONS, axis=1, keepdims=True)).astype(np.float32)
 
     def query(self, positions: np.ndarray, search_radius: float, time: float = 0.0) -> QueryResult:
@@ -241,7 +244,7 @@ class ObstacleQueries:
             return inside
         votes = np.zeros(len(candidates), np.int64)
         for direction in self._directions:
-            votes += self._odd_crossings(positions[candidates].astype(np.float32), direction)
+            votes += self._odd_crossings((positions[candidates] - self._parity_origin).astype(np.float32), direction)
         inside[candidates] = votes >= 2
         return inside
 
@@ -268,7 +271,11 @@ class ObstacleQueries:
             if not len(active):
                 break
             crossings.append(active * self._num_solids + self._face_component[hits["primID"][hit]])
-            origins[active] += (hits["tfar"][hit, None] + np.float32(CROSSING_STEP)) * direction
+            at = origins[active] + hits["tfar"][hit, None] * direction
+            # past the surface by CROSSING_STEP, or by a few float32 steps where those are coarser (a
+            # large scene's far corners): a fixed step there would land on the same surface again
+            step = np.maximum(np.float32(CROSSING_STEP), 4 * np.spacing(np.abs(at).max(axis=1)))
+            origins[active] = at + step[:, None] * direction
         if not crossings:
             return np.zeros(m, bool)
         keys, counts = np.unique(np.concatenate(crossings), return_counts=True)
