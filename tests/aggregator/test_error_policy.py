@@ -12,7 +12,7 @@ import pytest
 
 from tests.aggregator.conftest import make_aggregator, spawn_poses
 from tests.helpers import REPO, _read_line, free_port, start_worker, stop_process
-from visfly_dist.errors import ConfigError, RemoteError
+from visfly_dist.errors import ConfigError, NoWorkersError, RemoteError
 
 BAD = "gen:garage-stones?density=3"  # passes the config check; every worker refuses it (density <= 1)
 
@@ -59,6 +59,29 @@ def test_an_overloaded_worker_gets_no_new_scene_for_a_while_and_the_others_take_
     finally:
         for proc in workers:
             stop_process(proc)
+        stop_process(router)
+
+
+def test_a_start_up_whose_every_worker_stays_full_fails_within_the_startup_timeout(scene_root):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        assert "router ready" in _read_line(router, 30.0)
+        worker = start_worker("stuck", endpoint, scene_root, connect=True, worker_id="wa", extra_args=["--max-scenes", "1"])
+        agg = make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "stuck",
+                                    "startup_timeout_s": 3.0},
+                              scenes={"sources": ("gen:pillars",), "num_scenes": 2, "agents_per_scene": 1})
+        began = time.monotonic()
+        with pytest.raises(NoWorkersError, match=r"1 scene slot\(s\) could not be placed within startup_timeout_s=3: "
+                                                 r"every live worker backs off \(wa is full \(.*max-scenes"):
+            with agg:
+                pass
+        assert time.monotonic() - began < 20.0  # the back-off doubles to 30 s: without a deadline, half an hour
+    finally:
+        if worker is not None:
+            stop_process(worker)
         stop_process(router)
 
 

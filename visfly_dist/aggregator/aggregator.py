@@ -604,14 +604,23 @@ class Aggregator:
         return live
 
     def _place_all_now(self) -> None:
-        """Load every orphan and wait for the loads (start-up, and the rare blocking fallback)."""
+        """Load every orphan and wait for the loads (start-up, and the rare blocking fallback), for up
+        to ``startup_timeout_s`` while every worker is full."""
+        deadline = time.monotonic() + self.pool_config.startup_timeout_s
         for _ in range(len(self.table) + 64):
             if not self.table.orphans():
                 return
             live = self._pool.require_live()
             placeable = self._moves.placeable(live)
             if not placeable:  # every worker is full for now: wait for the first backoff to end
-                time.sleep(max(0.0, self._moves.full_until(live) - time.monotonic()))
+                until = self._moves.full_until(live)
+                if until > deadline:
+                    raise NoWorkersError(
+                        f"run {self.run_id!r}: {len(self.table.orphans())} scene slot(s) could not be placed within "
+                        f"startup_timeout_s={self.pool_config.startup_timeout_s:g}: every live worker backs off "
+                        f"({self._moves.why_full(live)}). Start more workers, raise their memory bound "
+                        "(--max-memory-mb), or load fewer scene copies (fewer envs, or more agents_per_scene)")
+                time.sleep(max(0.0, until - time.monotonic()))
                 continue
             gens = self._pool.generations(live)
             self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens)))

@@ -131,6 +131,7 @@ class SceneMoves:
         self.stale: dict[str, set[str]] = {}  # worker -> keys it may still hold but no longer serves
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
+        self._full_why: dict[str, str] = {}  # worker -> why it backs off (the last time it did)
         self._switches: dict[int, PendingSwitch] = {}  # slot -> its loaded swap, waiting for spawn pools
         self._switched = np.zeros(len(table.agent_scene), dtype=bool)  # scene changed under a running episode
         self._next_scene = np.zeros(len(table.agent_scene), dtype=bool)  # next episode starts in an armed swap
@@ -332,6 +333,7 @@ class SceneMoves:
         _, wait = self._full.get(worker, (0.0, OVERLOADED_BACKOFF_S[0] / 2))
         wait = min(2 * wait, OVERLOADED_BACKOFF_S[1])
         self._full[worker] = (time.monotonic() + wait, wait)
+        self._full_why[worker] = why
         log.warning("run %s: worker %s %s; no new scene for it for %g s", self._run_id, worker, why, wait)
 
     def placeable(self, live: Sequence[str]) -> list[str]:
@@ -342,6 +344,10 @@ class SceneMoves:
     def full_until(self, live: Sequence[str]) -> float:
         """When (``time.monotonic()``) the first of ``live``, all backing off, may take a scene again."""
         return min(self._full[w][0] for w in live)
+
+    def why_full(self, live: Sequence[str]) -> str:
+        """Why each of ``live`` backs off, for an error: ``local-0 is full (...); local-1 ...``."""
+        return "; ".join(f"{w} {self._full_why.get(w, 'backs off')}" for w in live)
 
     def drop_source(self, slot: int, move: Move, error: RemoteError) -> None:
         """A source that cannot load (``scene_error``) leaves the dataset; an orphan slot that waited
