@@ -85,6 +85,52 @@ def test_a_start_up_whose_every_worker_stays_full_fails_within_the_startup_timeo
         stop_process(router)
 
 
+def _garage_file(path, blocked: bool) -> str:
+    """A floor with a ceiling triangle (the flight box) and a pillar; ``blocked``: a closed block
+    filling the spawn region too."""
+    import trimesh
+
+    floor = trimesh.Trimesh([[-2, -5, 0], [12, -5, 0], [12, 5, 0], [-2, 5, 0], [0, 0, 4], [1, 0, 4], [0, 1, 4]],
+                            [[0, 1, 2], [0, 2, 3], [4, 5, 6]])
+    parts = [floor, trimesh.creation.box((1, 1, 2), trimesh.transformations.translation_matrix((8, 0, 1)))]
+    if blocked:
+        parts.append(trimesh.creation.box((2, 6, 3), trimesh.transformations.translation_matrix((1, 0, 1.5))))
+    trimesh.util.concatenate(parts).export(path)
+    return path.name
+
+
+def test_a_swapped_in_scene_with_no_room_to_start_is_dropped_naming_it_and_the_run_goes_on(tmp_path, caplog):
+    good, blocked = _garage_file(tmp_path / "good.ply", False), _garage_file(tmp_path / "blocked.ply", True)
+    spec = ("uniform", (1.0, -2.0, 0.5), (1.0, 2.0, 2.5), 0.5)  # navigation's spawn box
+    with make_aggregator(pool={"num_local_workers": 1, "scene_roots": (str(tmp_path),)},
+                         scenes={"sources": (good, blocked), "num_scenes": 1, "agents_per_scene": 1,
+                                 "swap_every_resets": 1, "shuffle": False}) as agg:
+        assert agg.slot_source(0) == good
+        poses = np.zeros((1, 7))
+        poses[0, :3], poses[0, 3] = agg.sample_spawn(np.array([0]), *spec)[0], 1.0
+        with caplog.at_level("WARNING", logger="visfly_dist.aggregator.scene_moves"):
+            agg.note_resets(np.array([0]))  # due: the next source (blocked) loads in the background
+            end = time.monotonic() + 60.0
+            while blocked not in agg.dataset.dropped and time.monotonic() < end:
+                assert not agg.observe(poses).lost.any()  # steps go on while the swap loads and fails
+                time.sleep(0.05)
+        assert "found only 0 of" in agg.dataset.dropped[blocked]
+        assert any(f"scene source {blocked!r} cannot be used" in r.getMessage() for r in caplog.records)
+        assert agg.slot_source(0) == good and not agg.take_next_scene().any()  # no swap was armed
+        for _ in range(3):  # later swaps draw from what is left of the dataset
+            agg.note_resets(np.array([0]))
+            assert agg.sample_spawn(np.array([0]), *spec).shape == (1, 3)
+            assert not agg.observe(poses).lost.any()
+
+
+def test_a_scene_in_use_with_no_room_to_start_fails_the_first_reset_naming_it(tmp_path):
+    blocked = _garage_file(tmp_path / "blocked.ply", True)
+    with make_aggregator(pool={"num_local_workers": 1, "scene_roots": (str(tmp_path),)},
+                         scenes={"sources": (blocked,), "num_scenes": 1, "agents_per_scene": 1}) as agg:
+        with pytest.raises(RemoteError, match=r"sampling spawn positions in 'blocked.ply' \(slot 0\): found only 0 of"):
+            agg.sample_spawn(np.array([0]), "uniform", (1.0, -2.0, 0.5), (1.0, 2.0, 2.5), 0.5)
+
+
 def test_a_step_over_a_workers_pixel_bound_fails_at_the_first_observation(scene_root):
     """``too_large`` is the run's configuration against the workers' bounds: it fails at once (the env's
     reset), not somewhere in training."""

@@ -690,9 +690,15 @@ class Aggregator:
     def _finish_spawn(self, job: SpawnJob, reply: Reply) -> None:
         """A pool arrived (a swap waiting for it may switch now), or the failure policy for its request."""
         if reply.message is None:
-            self._moves.cancel_switch(job.key.slot)  # a swap's scene that is loaded but will not be used
-            if reply.error is not None and not is_unknown_scene(reply.error):
-                raise reply.error
+            swap = self._moves.cancel_switch(job.key.slot)  # a swap's scene that is loaded but will not be used
+            error = reply.error
+            if error is not None and error.code == ErrorCode.SCENE_ERROR and swap is not None \
+                    and swap.source == job.key.source:  # no room to start in it: the swap's source leaves the dataset
+                self._moves.drop_source(job.key.slot, swap, error)
+                return
+            if error is not None and not is_unknown_scene(error):
+                raise RemoteError(reply.worker_id, error.error_type, f"sampling spawn positions in {job.key.source!r} "
+                                  f"(slot {job.key.slot}): {error.message}", code=error.code)
             self._handle_failure(reply)
             return
         positions = np.asarray(reply.message["positions"], dtype=np.float64).reshape(-1, 3)

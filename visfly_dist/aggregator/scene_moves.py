@@ -200,12 +200,15 @@ class SceneMoves:
                 del self._switches[key.slot]
                 self.switch(key.slot, switch.move, switch.bounds, switch.metadata)
 
-    def cancel_switch(self, slot: int) -> None:
-        """A spawn pool of ``slot`` failed: a loaded swap waiting there is not used (its key is unloaded later)."""
+    def cancel_switch(self, slot: int) -> Move | None:
+        """A spawn pool of ``slot`` failed: a loaded swap waiting there is not used (its key is unloaded
+        later). Returns that swap's move (``None``: no swap waited)."""
         switch = self._switches.pop(slot, None)
-        if switch is not None:
-            self._table.fail_move(slot, switch.move)
-            self.mark_stale(switch.move.worker, switch.move.key)
+        if switch is None:
+            return None
+        self._table.fail_move(slot, switch.move)
+        self.mark_stale(switch.move.worker, switch.move.key)
+        return switch.move
 
     @property
     def switching(self) -> bool:
@@ -350,11 +353,12 @@ class SceneMoves:
         return "; ".join(f"{w} {self._full_why.get(w, 'backs off')}" for w in live)
 
     def drop_source(self, slot: int, move: Move, error: RemoteError) -> None:
-        """A source that cannot load (``scene_error``) leaves the dataset; an orphan slot that waited
-        for it takes the next source. The run fails only when no source is left."""
+        """A source that cannot load, or whose spawn region has no free position (``scene_error``),
+        leaves the dataset; an orphan slot that waited for it takes the next source. The run fails
+        only when no source is left."""
         why = f"{error.message} (worker {move.worker})"
-        log.warning("run %s: scene source %r cannot be loaded and is dropped from the dataset: %s",
-                    self._run_id, move.source, why)
+        log.warning("run %s: scene source %r cannot be used (it does not load, or has no room to start in) "
+                    "and is dropped from the dataset: %s", self._run_id, move.source, why)
         if not self._dataset.drop(move.source, why):
             raise ConfigError(f"run {self._run_id!r}: no scene source can be loaded: "
                               + "; ".join(f"{src!r}: {w}" for src, w in self._dataset.dropped.items()))
