@@ -44,8 +44,12 @@ def test_fails_clearly_when_impossible():
     rng = np.random.default_rng(2)
     with pytest.raises(SceneError, match=r"found only 0 of 5 positions with clearance=0.1 m in uniform region a=\[-0.4"):
         sample_free_positions(5, 0.1, "uniform", -0.4, 0.4, rng, cube_distance, max_tries=2000)
-    with pytest.raises(SceneError, match="leave no room"):
+    with pytest.raises(SceneError, match=r"leave no room along x \(3 m\), y \(3 m\), z \(3 m\); lower the clearance"):
         sample_free_positions(1, 2.0, "uniform", 0, 1, rng, cube_distance, bounds=[[0, 0, 0], [3, 3, 3]])
+    # a ground plane alone (a mesh file's flight box is its bounding box): no clearance would help
+    with pytest.raises(SceneError, match=r"has no room to fly along z \(0 m\); a mesh file's flight box is its "
+                                         r"bounding box: add the scene's walls or ceiling"):
+        sample_free_positions(1, 0.5, "uniform", 0, 1, rng, cube_distance, bounds=[[-500, -500, 0], [500, 500, 0]])
     with pytest.raises(SceneError, match=r"distribution='poisson'.*\['uniform', 'normal'\]"):
         sample_free_positions(1, 0.1, "poisson", 0, 1, rng, cube_distance)
     with pytest.raises(SceneError, match="low a=.*<= high b="):

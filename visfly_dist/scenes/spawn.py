@@ -9,6 +9,8 @@ import numpy as np
 from visfly_dist.errors import SceneError
 
 DISTRIBUTIONS = ("uniform", "normal")
+NO_ROOM_CLEARANCE_M = 0.1
+"""A flight box thinner than twice this along an axis is flat: no spawn clearance leaves room in it."""
 
 
 def sample_free_positions(
@@ -58,7 +60,15 @@ def sample_free_positions(
         bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
         box = (bounds[0] + clearance, bounds[1] - clearance)
         if np.any(box[0] > box[1]):
-            raise SceneError(f"bounds {bounds.tolist()} shrunk by clearance={clearance} leave no room; lower the clearance")
+            extent = bounds[1] - bounds[0]
+            short = [f"{axis} ({e:g} m)" for axis, e, lo, hi in zip("xyz", extent, *box) if lo > hi]
+            if np.any(extent < 2 * NO_ROOM_CLEARANCE_M):  # flat: no clearance would help
+                raise SceneError(
+                    f"the scene's flight box {bounds.tolist()} has no room to fly along {', '.join(short)}; a mesh "
+                    "file's flight box is its bounding box: add the scene's walls or ceiling to the file, or save it "
+                    "as a scene directory whose scene.json gives its bounds (visfly_dist.scenes.save_scene)")
+            raise SceneError(f"bounds {bounds.tolist()} shrunk by clearance={clearance} leave no room along "
+                             f"{', '.join(short)}; lower the clearance")
 
     where = (f"{distribution} region a={a.tolist()}, b={b.tolist()}"
              + (f" within bounds {bounds.tolist()}" if bounds is not None else ""))
