@@ -127,6 +127,8 @@ def test_bad_task_exits_2_with_one_line(tmp_path: Path) -> None:
     ("max_episod_steps=20", "unknown setting(s) ['max_episod_steps'] for task 'hover'"),
     ('pool={"workerz": 1}', "unknown pool setting(s) ['workerz']"),
     ("max_episode_steps=0", "max_episode_steps=0 must be an int >= 1"),
+    ("num_envs=4", "--set num_envs=... is not taken here: --num-envs sets it"),  # make_env would get it twice
+    ("seed=3", "--set seed=... is not taken here: --seed sets it"),  # it would have won over --seed silently
 ])
 def test_bad_setting_exits_2_before_any_worker(setting: str, message: str, tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
@@ -136,6 +138,20 @@ def test_bad_setting_exits_2_before_any_worker(setting: str, message: str, tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("visfly-dist train: error: ") and message in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_an_out_folder_that_holds_a_run_or_cannot_be_made_fails_before_any_worker(
+        trained_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from visfly_dist.cli import main
+
+    model = (trained_run / "final.zip").read_bytes()
+    assert main(["train", "hover", "--out", str(trained_run), *TINY]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {str(trained_run)!r} holds a run already (its config.json)" in err
+    assert (trained_run / "final.zip").read_bytes() == model  # not overwritten
+    (tmp_path / "a_file").write_text("")
+    assert main(["train", "hover", "--out", str(tmp_path / "a_file" / "run"), *TINY]) == 2
+    assert f"{str(tmp_path / 'a_file')!r} is not a folder" in capsys.readouterr().err
 
 
 def children(pid: int) -> list[int]:

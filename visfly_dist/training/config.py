@@ -8,6 +8,7 @@ at once, before any worker starts. This module imports no torch, so ``--help`` s
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -271,7 +272,28 @@ class TrainConfig:
                        "and has no recurrent actor: drop --recurrent or use --algo sb3-ppo")
         if self.backbone not in BACKBONES:
             out.append(f"backbone={self.backbone!r} must be one of {BACKBONES}")
-        return out + self._scene_problems()
+        return out + self._owned_setting_problems() + self._out_problems() + self._scene_problems()
+
+    def _out_problems(self) -> list[str]:
+        """An ``--out`` that holds a run already (its model would be overwritten) or cannot be made."""
+        if self.out is None:
+            return []
+        out = Path(self.out)
+        if (out / "config.json").exists():
+            return [f"--out {str(out)!r} holds a run already (its config.json); give another folder, or remove "
+                    "that one, so that its model is not overwritten"]
+        existing = next((p for p in (out, *out.parents) if p.exists()), None)
+        if existing is not None and not existing.is_dir():
+            return [f"--out {str(out)!r}: {str(existing)!r} is not a folder"]
+        if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+            return [f"--out {str(out)!r}: cannot write in {str(existing)!r}"]
+        return []
+
+    def _owned_setting_problems(self) -> list[str]:
+        """``--set`` keys that a flag or the trainer sets (``make_env`` would get them twice)."""
+        owners = {"num_envs": "--num-envs", "seed": "--seed", "requires_grad": "the trainer (bptt and shac set it)"}
+        return [f"--set {key}=... is not taken here: {owner} sets it" for key, owner in owners.items()
+                if key in self.overrides]
 
     def _scene_problems(self) -> list[str]:
         """Missing ``--scene-root`` folders, and scene paths outside every root."""

@@ -277,6 +277,7 @@ def eval_config(task: str, seed: int, run_cfg: TrainConfig | None, overrides: di
     ``evaluation_defaults`` and the given changes (which win)."""
     cfg = run_cfg if run_cfg is not None and run_cfg.task == task else TrainConfig(task=task)
     cfg = cfg.resolved()
+    cfg.out = None  # the training run's folder: evaluation writes nothing there
     cfg.seed = seed
     cfg.worker_threads = None  # this host's cores, shared among the workers (the run's host may have had more)
     cfg.overrides = {**cfg.overrides, **task_class(task).config_class.evaluation_defaults, **overrides}
