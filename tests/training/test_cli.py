@@ -16,6 +16,8 @@ import imageio.v2 as imageio
 import pytest
 from PIL import Image
 
+from visfly_dist.training.evaluation import missing_normalization
+
 CLI = [sys.executable, "-m", "visfly_dist.cli"]
 TINY = ["--num-envs", "4", "--workers", "1", "--n-steps", "32", "--batch-size", "64", "--set", "max_episode_steps=20"]
 
@@ -152,6 +154,22 @@ def test_an_out_folder_that_holds_a_run_or_cannot_be_made_fails_before_any_worke
     (tmp_path / "a_file").write_text("")
     assert main(["train", "hover", "--out", str(tmp_path / "a_file" / "run"), *TINY]) == 2
     assert f"{str(tmp_path / 'a_file')!r} is not a folder" in capsys.readouterr().err
+
+
+def test_eval_of_a_checkpoint_without_its_normalisation_fails_naming_the_file(
+        trained_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from visfly_dist.cli import main
+
+    copy = tmp_path / "copied"  # the model and the run's config, without final.norm.npz
+    copy.mkdir()
+    for name in ("final.zip", "config.json"):
+        (copy / name).write_bytes((trained_run / name).read_bytes())
+    assert main(["eval", "hover", "--checkpoint", str(copy / "final.zip"), "--episodes", "2"]) == 2
+    err = capsys.readouterr().err
+    assert f"{str(copy / 'final.norm.npz')!r} is missing: the run trained on normalised observations" in err
+    assert missing_normalization(trained_run / "final.zip", None) is None  # beside it: nothing to say
+    (copy / "config.json").unlink()  # nothing says whether the run normalised: a warning, not an error
+    assert "evaluating without observation normalisation" in str(missing_normalization(copy / "final.zip", None))
 
 
 def children(pid: int) -> list[int]:

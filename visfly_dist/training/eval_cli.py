@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from visfly_dist.protocol.session import add_zenoh_config_argument
@@ -65,7 +66,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.errors import ConfigError
     from visfly_dist.training.bptt import load_actor
-    from visfly_dist.training.evaluation import Policy, build_eval_env, evaluate, find_run_config, load_policy
+    from visfly_dist.training.evaluation import (
+        Policy,
+        build_eval_env,
+        evaluate,
+        find_run_config,
+        load_policy,
+        missing_normalization,
+    )
     from visfly_dist.training.host_plan import check_device
     from visfly_dist.training.video import VideoRecorder
 
@@ -85,6 +93,9 @@ def run(args: argparse.Namespace) -> int:
     if train_seed == args.seed and not args.allow_training_seed:
         raise ConfigError(f"--seed {args.seed} is the training run's seed: its scenes and spawns were seen in training; "
                           "pick another seed (or pass --allow-training-seed)")
+    warning = None if differentiable else missing_normalization(checkpoint, run_cfg)
+    if warning is not None:
+        print(f"visfly-dist eval: warning: {warning}", file=sys.stderr, flush=True)
     overrides = with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config)
     pool = dict(workers=args.workers, connect=tuple(args.connect) or None, run_id=args.run_id, backend=args.backend,
                 scene_roots=scene_roots(args) or None)

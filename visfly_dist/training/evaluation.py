@@ -142,6 +142,24 @@ def find_run_config(checkpoint: Path) -> TrainConfig | None:
     return None
 
 
+def missing_normalization(checkpoint: Path, run_cfg: TrainConfig | None) -> str | None:
+    """Why ``checkpoint`` (a PPO ``.zip``) cannot be evaluated as it is, or ``None``: its run trained
+    on normalised observations and its ``NAME.norm.npz`` is not beside it (the policy would act, without
+    a word, on values it never saw). Raises ConfigError for that; returns a warning when the run's
+    ``config.json`` is not found either, so nothing says whether it normalised."""
+    stats = norm_path(checkpoint)
+    if stats.is_file():
+        return None
+    if run_cfg is None:
+        return (f"no {stats.name} and no run config.json beside {str(checkpoint)!r}: evaluating without observation "
+                "normalisation, as for a run trained with --no-normalize")
+    if run_cfg.normalize:
+        raise ConfigError(f"{str(stats)!r} is missing: the run trained on normalised observations (config.json: "
+                          f"normalize true), and its policy without those statistics acts on values it never saw; put "
+                          f"the {stats.name} written with the checkpoint beside it")
+    return None
+
+
 def is_recurrent_checkpoint(checkpoint: Path) -> bool:
     """Whether ``checkpoint`` (an SB3 ``.zip``) holds an sb3-contrib recurrent policy (``RecurrentPPO``):
     read from the policy class recorded in the zip, without unpickling anything."""
