@@ -216,3 +216,28 @@ def test_ctrl_c_or_sigterm_saves_the_model_and_stops_the_workers(tmp_path: Path,
     assert "interrupted at" in stderr
     assert (out / "final.zip").is_file() and (out / "success_curve.png").is_file()
     assert not [pid for pid in workers if alive(pid)]
+
+
+def test_an_error_that_ends_a_run_keeps_the_model_so_far(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    no_comeback = 'pool={"outage_limit_s": 2, "respawn": false}'  # every worker gone: NoWorkersError after 2 s
+    proc = subprocess.Popen([*CLI, "train", "hover", "--timesteps", "10000000", "--out", str(out), *TINY,
+                             "--set", no_comeback], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while not (out / "success_curve.csv").exists() or len((out / "success_curve.csv").read_text().splitlines()) < 2:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() is not None else "timeout"
+            time.sleep(0.2)
+        for pid in children(proc.pid):
+            os.kill(pid, signal.SIGKILL)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 2 and "no scene worker reachable for outage_limit_s=2" in stderr, stderr
+    assert f"the model so far is in {out / 'crash.zip'}" in stderr
+    assert (out / "crash.zip").is_file() and (out / "crash.norm.npz").is_file() and not (out / "final.zip").exists()
+    from stable_baselines3 import PPO
+
+    assert PPO.load(out / "crash.zip", device="cpu").num_timesteps >= 128  # at least the first rollout's steps

@@ -34,6 +34,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.tasks import make_env
+from visfly_dist.training.checkpoints import save_on_crash
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.diff_common import (
     DiffActor,
@@ -128,6 +129,9 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
         except KeyboardInterrupt:
             interrupted = True
             print(f"interrupted at {p.timesteps:,} steps; saving the actor", file=sys.stderr, flush=True)
+        except Exception:
+            save_on_crash(lambda path: save_params({"actor": actor}, path), run_dir / "crash.npz", p.timesteps)
+            raise
         log.close()
         final = save_params({"actor": actor}, run_dir / "final.npz")
         result = TrainResult(run_dir, final, p.timesteps, interrupted, log.summary())

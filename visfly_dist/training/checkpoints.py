@@ -8,6 +8,7 @@ the whole wrapper; plain arrays are enough to rebuild it around a fresh env.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
@@ -104,6 +105,20 @@ def load_normalization(venv: VecEnv, path: Path) -> VecNormalize:
         wrapped.ret_rms.mean, wrapped.ret_rms.var = data["ret/mean"], data["ret/var"]
         wrapped.ret_rms.count = float(data["ret/count"])
     return wrapped
+
+
+def save_on_crash(save: Callable[[Path], object], path: Path, steps: int) -> None:
+    """Keep what a run learnt when an error ends it (no worker left, a scene that cannot serve):
+    ``save(path)``, said on stderr. Called while the error propagates: a save that fails too is
+    said and never hides it."""
+    try:
+        save(path)
+    except Exception as exc:  # noqa: BLE001 -- the original error matters more than this one
+        print(f"training stopped at {steps:,} steps by the error below; saving the model to {path} failed too ({exc})",
+              file=sys.stderr, flush=True)
+        return
+    print(f"training stopped at {steps:,} steps by the error below; the model so far is in {path}",
+          file=sys.stderr, flush=True)
 
 
 def save_checkpoint(model: BaseAlgorithm, path: Path) -> Path:

@@ -46,7 +46,7 @@ from visfly_dist.errors import ConfigError
 from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
 from visfly_dist.training.callbacks import SuccessCallback
-from visfly_dist.training.checkpoints import CheckpointEvery, Checkpoints, save_checkpoint
+from visfly_dist.training.checkpoints import CheckpointEvery, Checkpoints, save_checkpoint, save_on_crash
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
 from visfly_dist.training.extractors import visfly_policy_kwargs
 from visfly_dist.training.host_plan import apply_host_plan
@@ -184,6 +184,9 @@ def train(cfg: TrainConfig) -> TrainResult:
             print(f"interrupted at {model.num_timesteps:,} steps; saving the model", file=sys.stderr, flush=True)
             if not tensor:
                 success.on_training_end()
+        except Exception:
+            save_on_crash(save, run_dir / "crash.zip", model.num_timesteps)
+            raise
         if video is not None:
             video.close(wait=True)  # the last film, if one is running
         final = save(run_dir / "final.zip")

@@ -31,6 +31,7 @@ import torch
 from stable_baselines3.common.logger import configure
 
 from visfly_dist.training.bptt import Progress, build_diff_env, first_observation, report_lost
+from visfly_dist.training.checkpoints import save_on_crash
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.diff_common import (
     Critic,
@@ -179,6 +180,9 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
         except KeyboardInterrupt:
             interrupted = True
             print(f"interrupted at {p.timesteps:,} steps; saving actor and critic", file=sys.stderr, flush=True)
+        except Exception:
+            save_on_crash(lambda path: save_params({"actor": actor, "critic": critic}, path), run_dir / "crash.npz", p.timesteps)
+            raise
         log.close()
         final = save_params({"actor": actor, "critic": critic}, run_dir / "final.npz")
         result = TrainResult(run_dir, final, p.timesteps, interrupted, log.summary())
