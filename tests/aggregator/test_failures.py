@@ -111,6 +111,23 @@ def test_hung_worker_is_killed_replaced_and_rebalanced():
         np.testing.assert_array_equal(again.images["depth"], before.images["depth"])
 
 
+def test_every_local_worker_hung_at_once_is_replaced_and_the_run_goes_on():
+    # Local workers on their private channels: no router or network between them and the run, so a
+    # worker that answers neither its step nor a probe is hung itself, even when no other answers.
+    with make_aggregator(pool={"respawn": True, "step_timeout_s": 2.0, "lease_ms": 10_000}) as agg:
+        poses = spawn_poses(agg)
+        before = agg.observe(poses)
+        pids = list(agg.local_worker_pids().values())
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        assert agg.observe(poses).lost.all()  # waits out the deadline, then serves the last good data
+        assert wait_for(lambda: not any(pid_alive(p) for p in pids), timeout=10)  # both killed, not waited for
+        again = _observe_until(agg, poses, lambda o: not o.lost.any())  # served by the first replacement up
+        assert not again.lost.any() and not set(agg.local_worker_pids().values()) & set(pids)
+        assert wait_for(lambda: len(agg.workers) == 2, timeout=60), agg.workers  # and both came up
+        np.testing.assert_array_equal(again.images["depth"], before.images["depth"])
+
+
 def test_an_unload_lost_on_the_way_is_retried_and_a_delivered_one_is_not():
     """A worker that rejoins is asked to unload scenes it no longer serves. When that request gets no
     reply (the link flapped again), the key goes back on the worker's list for the next attempt;

@@ -556,8 +556,11 @@ class Aggregator:
         else:
             reason = reply.failure or "failed"
             if not self._pool.dropped(reply.worker_id):  # once dropped, the requests it left unanswered change nothing
+                # Replaced while others answer: when none does, the router or the network may be down and the
+                # worker fine. A local worker on its private channel has no network in between: replaced anyway.
                 others = [w for w in self._pool.live_workers() if w != reply.worker_id]
-                self._pool.drop(reply.worker_id, reason, replace=bool(others), unanswered_bytes=reply.unanswered_bytes)
+                replace = bool(others) or self._pool.transport(reply.worker_id) == "channel"
+                self._pool.drop(reply.worker_id, reason, replace=replace, unanswered_bytes=reply.unanswered_bytes)
         self._moves.orphan(reply.worker_id, reason)
 
     def _maintain(self) -> dict[str, int]:
