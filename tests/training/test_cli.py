@@ -241,3 +241,21 @@ def test_an_error_that_ends_a_run_keeps_the_model_so_far(tmp_path: Path) -> None
     from stable_baselines3 import PPO
 
     assert PPO.load(out / "crash.zip", device="cpu").num_timesteps >= 128  # at least the first rollout's steps
+
+
+def test_a_stop_swallowed_while_the_env_starts_still_stops_the_run(tmp_path: Path) -> None:
+    """A Ctrl-C that lands in a library catching BaseException (trimesh's optional imports, while the
+    first scene checks import it) is remembered: the run stops before its first step and saves."""
+    from visfly_dist.training import stop
+    from visfly_dist.training.config import TrainConfig
+    from visfly_dist.training.ppo import train
+
+    try:
+        stop.ask(signal.SIGINT)  # what the CLI's handler does
+    except KeyboardInterrupt:
+        pass  # ... and what such a library does with it
+    cfg = TrainConfig(task="hover", timesteps=10_000_000, num_envs=4, workers=1, n_steps=32, batch_size=64,
+                      out=str(tmp_path / "run"), progress=False, overrides={"max_episode_steps": 20})
+    result = train(cfg)
+    assert result.interrupted and result.timesteps == 0 and (tmp_path / "run" / "final.zip").is_file()
+    stop.raise_if_asked()  # taken by the trainer: a next run in this process starts afresh

@@ -34,6 +34,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.tasks import make_env
+from visfly_dist.training import stop
 from visfly_dist.training.checkpoints import save_on_crash
 from visfly_dist.training.config import TrainConfig
 from visfly_dist.training.diff_common import (
@@ -108,6 +109,7 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
         obs = first_observation(env)
         try:
             while p.timesteps < cfg.timesteps:
+                stop.raise_if_asked()  # a stop swallowed on its way
                 window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma)
                 p.timesteps += window.steps * env.num_envs
                 optimizer.zero_grad(set_to_none=True)
@@ -127,6 +129,7 @@ def train_bptt(cfg: TrainConfig) -> TrainResult:
                     save_params({"actor": actor}, run_dir / "checkpoints" / f"step_{p.timesteps}.npz")
                     p.next_checkpoint += cfg.checkpoint_every
         except KeyboardInterrupt:
+            stop.taken()
             interrupted = True
             print(f"interrupted at {p.timesteps:,} steps; saving the actor", file=sys.stderr, flush=True)
         except Exception:

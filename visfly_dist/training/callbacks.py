@@ -22,6 +22,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from visfly_dist.tasks.outcomes import END_CAUSES, end_cause
+from visfly_dist.training import stop
 
 CURVE_FIELDS = ("timesteps", "success_rate", "mean_return", "mean_length", "episodes")
 
@@ -152,3 +153,14 @@ def plot_success_curve(csv_path: Path, png_path: Path, window: int = 100) -> Pat
     fig.savefig(png_path, dpi=100)
     plt.close(fig)
     return Path(png_path)
+
+
+class StopWhenAsked(BaseCallback):
+    """SB3's loop: raise, after each rollout, a stop (Ctrl-C, SIGTERM) swallowed on its way
+    (:mod:`~visfly_dist.training.stop`)."""
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        stop.raise_if_asked()

@@ -45,7 +45,8 @@ from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.errors import ConfigError
 from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
-from visfly_dist.training.callbacks import SuccessCallback
+from visfly_dist.training import stop
+from visfly_dist.training.callbacks import StopWhenAsked, SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, Checkpoints, save_checkpoint, save_on_crash
 from visfly_dist.training.config import PPO_ALGOS, TrainConfig, default_ppo
 from visfly_dist.training.extractors import visfly_policy_kwargs
@@ -166,6 +167,7 @@ def train(cfg: TrainConfig) -> TrainResult:
             checkpoints = Checkpoints(run_dir / "checkpoints", cfg.checkpoint_every, trainer.save)
 
             def on_rollout_end(n: int) -> None:
+                stop.raise_if_asked()
                 checkpoints(n)
                 if video is not None:
                     video.maybe_record(n, model.policy, trainer.norm)
@@ -173,13 +175,15 @@ def train(cfg: TrainConfig) -> TrainResult:
             learn = lambda: trainer.learn(timesteps, success, on_rollout_end=on_rollout_end)  # noqa: E731
             save, phases = trainer.save, trainer.phase_seconds
         else:
-            callbacks = [success, CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every)]
+            callbacks = [success, CheckpointEvery(run_dir / "checkpoints", cfg.checkpoint_every), StopWhenAsked()]
             callbacks += [VideoCallback(video)] if video is not None else []
             learn = lambda: model.learn(timesteps, callback=callbacks, progress_bar=False)  # noqa: E731
             save, phases = (lambda path: save_checkpoint(model, path)), getattr(model, "phase_seconds", {})
         try:
+            stop.raise_if_asked()  # a stop swallowed while the env started
             learn()
         except KeyboardInterrupt:
+            stop.taken()
             interrupted = True
             print(f"interrupted at {model.num_timesteps:,} steps; saving the model", file=sys.stderr, flush=True)
             if not tensor:

@@ -30,6 +30,7 @@ from typing import Callable
 import torch
 from stable_baselines3.common.logger import configure
 
+from visfly_dist.training import stop
 from visfly_dist.training.bptt import Progress, build_diff_env, first_observation, report_lost
 from visfly_dist.training.checkpoints import save_on_crash
 from visfly_dist.training.config import TrainConfig
@@ -138,6 +139,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
         obs = first_observation(env)
         try:
             while p.timesteps < cfg.timesteps:
+                stop.raise_if_asked()  # a stop swallowed on its way
                 # Actor: the window's loss, through the dynamics and the target critic's input.
                 weight = min(1.0, p.windows / VALUE_RAMP_WINDOWS)
                 window = rollout_window(env, actor, obs, cfg.horizon, cfg.gamma,
@@ -178,6 +180,7 @@ def train_shac(cfg: TrainConfig) -> TrainResult:
                     save_params({"actor": actor, "critic": critic}, run_dir / "checkpoints" / f"step_{p.timesteps}.npz")
                     p.next_checkpoint += cfg.checkpoint_every
         except KeyboardInterrupt:
+            stop.taken()
             interrupted = True
             print(f"interrupted at {p.timesteps:,} steps; saving actor and critic", file=sys.stderr, flush=True)
         except Exception:

@@ -18,10 +18,12 @@ from __future__ import annotations
 
 import argparse
 import signal
+import sys
 from pathlib import Path
 
 from visfly_dist.errors import ConfigError
 from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
+from visfly_dist.training import stop
 from visfly_dist.training.config import ALGOS, BACKBONES, TrainConfig, parse_override
 
 
@@ -147,16 +149,25 @@ def run(args: argparse.Namespace) -> int:
     else:
         from visfly_dist.training.ppo import train
     stopped: list[int] = []
-    previous = signal.signal(signal.SIGTERM, lambda signum, frame: _stop(stopped, signum))
+    handlers = {signum: signal.signal(signum, lambda signum, frame: _stop(stopped, signum))
+                for signum in (signal.SIGINT, signal.SIGTERM)}
+    stop.taken()
     try:
         result = train(cfg)
+    except KeyboardInterrupt:
+        if not stopped:
+            raise
+        print(f"interrupted (signal {stopped[0]}) before training began", file=sys.stderr, flush=True)
+        return 128 + stopped[0]
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, previous in handlers.items():
+            signal.signal(signum, previous)
+        stop.taken()
     return 128 + stopped[0] if stopped else 130 if result.interrupted else 0
 
 
 def _stop(stopped: list[int], signum: int) -> None:
-    """SIGTERM (Slurm's time limit and preemption, ``kill``, ``timeout``) stops training as Ctrl-C
-    does: the trainer saves ``final.zip`` and closes its workers."""
+    """Ctrl-C and SIGTERM (Slurm's time limit and preemption, ``kill``, ``timeout``) stop training:
+    the trainer saves ``final.zip`` and closes its workers (:mod:`~visfly_dist.training.stop`)."""
     stopped.append(signum)
-    raise KeyboardInterrupt(f"signal {signum}")
+    stop.ask(signum)
