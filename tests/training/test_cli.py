@@ -16,6 +16,7 @@ import imageio.v2 as imageio
 import pytest
 from PIL import Image
 
+from tests.helpers import wait_for
 from visfly_dist.training.evaluation import missing_normalization
 
 CLI = [sys.executable, "-m", "visfly_dist.cli"]
@@ -259,3 +260,20 @@ def test_a_stop_swallowed_while_the_env_starts_still_stops_the_run(tmp_path: Pat
     result = train(cfg)
     assert result.interrupted and result.timesteps == 0 and (tmp_path / "run" / "final.zip").is_file()
     stop.raise_if_asked()  # taken by the trainer: a next run in this process starts afresh
+
+
+def test_sigterm_stops_an_eval_and_its_workers(trained_run: Path) -> None:
+    proc = subprocess.Popen([*CLI, "eval", "hover", "--checkpoint", str(trained_run / "final.zip"), "--episodes", "100000",
+                             "--num-envs", "2", "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_for(lambda: children(proc.pid) or proc.poll() is not None, timeout=60)
+        workers = children(proc.pid)
+        time.sleep(3.0)  # into the episodes
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130 and "interrupted" in stderr, stderr  # unwound as Ctrl-C, not killed outright
+    assert workers and not [pid for pid in workers if alive(pid)]

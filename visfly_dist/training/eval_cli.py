@@ -29,8 +29,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
+from typing import Any
 
 from visfly_dist.protocol.session import add_zenoh_config_argument
 from visfly_dist.training.config import parse_override
@@ -65,17 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.errors import ConfigError
-    from visfly_dist.training.bptt import load_actor
-    from visfly_dist.training.evaluation import (
-        Policy,
-        build_eval_env,
-        evaluate,
-        find_run_config,
-        load_policy,
-        missing_normalization,
-    )
+    from visfly_dist.training.evaluation import find_run_config, missing_normalization
     from visfly_dist.training.host_plan import check_device
-    from visfly_dist.training.video import VideoRecorder
 
     if args.episodes < 1:
         raise ConfigError(f"--episodes {args.episodes} must be >= 1")
@@ -99,6 +92,25 @@ def run(args: argparse.Namespace) -> int:
     overrides = with_zenoh_config(dict(parse_override(item) for item in args.set), args.zenoh_config)
     pool = dict(workers=args.workers, connect=tuple(args.connect) or None, run_id=args.run_id, backend=args.backend,
                 scene_roots=scene_roots(args) or None)
+    # SIGTERM (kill, timeout, Slurm) unwinds as Ctrl-C does: the workers stop and the shared memory goes
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        return _evaluate(args, checkpoint, differentiable, modes, run_cfg, train_seed, overrides, pool, device)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def _evaluate(args: argparse.Namespace, checkpoint: Path, differentiable: bool, modes: tuple[bool, ...],
+              run_cfg: Any, train_seed: int | None, overrides: dict[str, Any], pool: dict[str, Any], device: str) -> int:
+    """Build the env, evaluate each mode, film, report (``run``'s second half)."""
+    from visfly_dist.training.bptt import load_actor
+    from visfly_dist.training.evaluation import Policy, build_eval_env, evaluate, load_policy
+    from visfly_dist.training.video import VideoRecorder
+
     env = build_eval_env(args.task, args.num_envs, args.seed, run_cfg, overrides, pool)
     recorder, results = None, []
     try:
