@@ -127,3 +127,19 @@ def test_worker_load_request_and_env_sources_carry_the_up_axis(root, tall_glb):
 def test_bad_source_options_are_refused(root, tall_glb, source, message):
     with pytest.raises(SceneError, match=message):
         resolve_source(source, roots=[root])
+
+
+def test_a_mesh_kilometres_wide_loads_with_a_word_on_its_units(tmp_path, caplog):
+    from visfly_dist.scenes.meshes import load_mesh_file
+
+    box = trimesh.creation.box((14000.0, 10000.0, 4000.0))  # a 14 x 10 x 4 m garage exported in millimetres
+    box.export(tmp_path / "garage_mm.stl")
+    with caplog.at_level("WARNING", logger="visfly_dist.scenes.meshes"):
+        scene = load_mesh_file(tmp_path / "garage_mm.stl")
+    assert np.allclose(scene.bounds[1] - scene.bounds[0], [14000, 10000, 4000])  # loaded as it is
+    assert any("spans 14000 m; scene units are metres" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    trimesh.creation.box((14.0, 10.0, 4.0)).export(tmp_path / "garage.stl")
+    with caplog.at_level("WARNING", logger="visfly_dist.scenes.meshes"):
+        load_mesh_file(tmp_path / "garage.stl")
+    assert not caplog.records

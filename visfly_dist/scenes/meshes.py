@@ -12,6 +12,7 @@ convention; they are taken as z-up by default. An OBJ file gives one object per 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any, Sequence
 from urllib.parse import unquote
@@ -23,6 +24,8 @@ from visfly_dist.errors import SceneError
 from visfly_dist.scenes.paths import check_inside
 from visfly_dist.scenes.scene import Scene, SceneObject
 from visfly_dist.scenes.source_syntax import MESH_SUFFIXES, UP_AXES
+
+log = logging.getLogger(__name__)
 
 # Rotation +90 deg about x: (x, y, z) -> (x, -z, y). Takes a y-up frame (glTF, Habitat) to z-up.
 Y_UP_TO_Z_UP = np.array(
@@ -111,12 +114,21 @@ def load_mesh_file(path: Path, up_axis: str | None = None, roots: Sequence[Path]
         if up == "y":
             mesh.apply_transform(Y_UP_TO_Z_UP)
         objects.append(SceneObject(name=name, object_id=object_id, mesh=mesh))
+    bounds = objects_bounds(objects)
+    extent = float((bounds[1] - bounds[0]).max())
+    if extent > LARGE_EXTENT_M:  # legal, but a mesh in millimetres or centimetres looks like this
+        log.warning("mesh file %r spans %.0f m; scene units are metres (a mesh in millimetres must be scaled)",
+                    str(path), extent)
     return Scene(
         name=path.stem,
         objects=objects,
-        bounds=objects_bounds(objects),
+        bounds=bounds,
         metadata={"kind": "mesh", "source": path.name, "up_axis": up},
     )
+
+
+LARGE_EXTENT_M = 2000.0
+"""A mesh file larger than this along some axis is loaded with a warning about its units."""
 
 
 def objects_bounds(objects: Sequence[SceneObject]) -> np.ndarray:
