@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import time
+from typing import Iterator
 
 import numpy as np
 import pytest
@@ -62,14 +64,25 @@ def test_an_overloaded_worker_gets_no_new_scene_for_a_while_and_the_others_take_
         stop_process(router)
 
 
-def test_a_start_up_whose_every_worker_stays_full_fails_within_the_startup_timeout(scene_root):
+@contextlib.contextmanager
+def _routed_worker(run_id: str, scene_root, worker_id: str, extra_args: list[str]) -> Iterator[str]:
+    """A router and one worker joined to it, started with ``extra_args`` (its limits); yields the endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     worker = None
     try:
         assert "router ready" in _read_line(router, 30.0)
-        worker = start_worker("stuck", endpoint, scene_root, connect=True, worker_id="wa", extra_args=["--max-scenes", "1"])
+        worker = start_worker(run_id, endpoint, scene_root, connect=True, worker_id=worker_id, extra_args=extra_args)
+        yield endpoint
+    finally:
+        if worker is not None:
+            stop_process(worker)
+        stop_process(router)
+
+
+def test_a_start_up_whose_every_worker_stays_full_fails_within_the_startup_timeout(scene_root):
+    with _routed_worker("stuck", scene_root, "wa", ["--max-scenes", "1"]) as endpoint:
         agg = make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "stuck",
                                     "startup_timeout_s": 3.0},
                               scenes={"sources": ("gen:pillars",), "num_scenes": 2, "agents_per_scene": 1})
@@ -79,10 +92,6 @@ def test_a_start_up_whose_every_worker_stays_full_fails_within_the_startup_timeo
             with agg:
                 pass
         assert time.monotonic() - began < 20.0  # the back-off doubles to 30 s: without a deadline, half an hour
-    finally:
-        if worker is not None:
-            stop_process(worker)
-        stop_process(router)
 
 
 def _garage_file(path, blocked: bool) -> str:
@@ -134,20 +143,9 @@ def test_a_scene_in_use_with_no_room_to_start_fails_the_first_reset_naming_it(tm
 def test_a_step_over_a_workers_pixel_bound_fails_at_the_first_observation(scene_root):
     """``too_large`` is the run's configuration against the workers' bounds: it fails at once (the env's
     reset), not somewhere in training."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
-                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-    worker = None
-    try:
-        assert "router ready" in _read_line(router, 30.0)
-        worker = start_worker("big", endpoint, scene_root, connect=True, worker_id="small",
-                              extra_args=["--max-pixels", "1000"])  # 32 x 24 depth: 768 pixels per agent
+    with _routed_worker("big", scene_root, "small", ["--max-pixels", "1000"]) as endpoint:  # 32 x 24 depth: 768 pixels an agent
         with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "big"},
                              scenes={"sources": ("gen:pillars",), "num_scenes": 1, "agents_per_scene": 2}) as agg:
             with pytest.raises(RemoteError, match=r"step asks for 1536 pixels .* over this worker's bound of 1000") as err:
                 agg.observe(np.tile(np.array([[2.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]], np.float32), (2, 1)))
             assert err.value.code == "too_large"
-    finally:
-        if worker is not None:
-            stop_process(worker)
-        stop_process(router)
