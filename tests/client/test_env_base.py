@@ -197,6 +197,15 @@ def test_close_is_idempotent_and_the_env_refuses_work_afterwards():
         env.reset()
 
 
+def test_a_group_sent_before_close_is_not_received_after_it():
+    env = make_counter(num_envs=2)
+    with env:
+        env.reset()
+        env.send(np.zeros((2, 4), np.float32), np.arange(2))
+    with pytest.raises(ConfigError, match="this env is closed"):  # not a stale step, nor a worker's shutdown error
+        env.recv()
+
+
 def _kill_a_worker(env):
     """SIGKILL one of two local workers; the agents whose scenes it served."""
     victim = env.aggregator.workers[0]

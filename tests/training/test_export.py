@@ -124,12 +124,36 @@ def test_metadata_documents_inputs_rate_and_command(recorded: dict) -> None:
 
 
 @pytest.mark.parametrize("recorded", ["navigation"], indirect=True)   # one task is enough
-def test_export_refuses_another_tasks_checkpoint(recorded: dict, tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="observes"):
-        from visfly_dist.training.export import export_checkpoint
+def test_export_refuses_what_would_write_a_wrong_file(recorded: dict, tmp_path: Path, capsys) -> None:
+    from visfly_dist.training.export import export_checkpoint
 
-        export_checkpoint("hover", recorded["checkpoint"], tmp_path / "x.onnx", env_settings={})
+    task, checkpoint = recorded["task"], recorded["checkpoint"]
+    other = "navigation" if task != "navigation" else "hover"
+    with pytest.raises(ConfigError, match=rf"was trained on task '{task}' \(its config.json\), not '{other}'"):
+        export_checkpoint(other, checkpoint, tmp_path / "x.onnx", env_settings={})
     assert main(["export", "hover", "--checkpoint", str(tmp_path / "missing.zip"), "--out", str(tmp_path / "x.onnx")]) == 2
+    # a typo in --set would only fill the metadata (rate, controller): refused as training refuses it
+    assert main(["export", task, "--checkpoint", str(checkpoint), "--out", str(tmp_path / "x.onnx"),
+                 "--set", "ctrl_dtt=0.02"]) == 2
+    assert f"unknown setting(s) ['ctrl_dtt'] for task '{task}'" in capsys.readouterr().err
+    assert main(["export", task, "--checkpoint", str(checkpoint), "--out", str(tmp_path / "x.onnx"), "--opset", "11"]) == 2
+    assert "opset=11: the lowest checked against onnxruntime is 12" in capsys.readouterr().err
+    copy = tmp_path / "copied"  # the model and its run's config.json, without final.norm.npz
+    copy.mkdir()
+    for name in ("final.zip", "config.json"):
+        (copy / name).write_bytes((recorded["run_dir"] / name).read_bytes())
+    assert main(["export", task, "--checkpoint", str(copy / "final.zip"), "--out", str(tmp_path / "x.onnx")]) == 2
+    assert "final.norm.npz' is missing: the run trained on normalised observations" in capsys.readouterr().err
+    assert not (tmp_path / "x.onnx").exists()
+
+
+def test_opset_12_runs_in_onnxruntime_as_17_does(recorded: dict) -> None:
+    run_dir, task = recorded["run_dir"], recorded["task"]
+    out = run_dir / "policy12.onnx"
+    assert main(["export", task, "--checkpoint", str(recorded["checkpoint"]), "--out", str(out), "--opset", "12"]) == 0
+    run_runner(str(out), "--observations", str(run_dir / "observations.npz"), "--out", str(run_dir / "actions12.npz"))
+    with np.load(run_dir / "actions12.npz") as data:
+        np.testing.assert_allclose(data["action"], recorded["expected"], atol=1e-5, rtol=0)
 
 
 def test_action_mapping_of_ctbr_follows_the_airframe() -> None:

@@ -546,6 +546,7 @@ class TensorEnv:
         Raises:
             ConfigError: nothing was sent, or ``terminal`` is neither.
         """
+        self._check_open()
         if not self._in_flight:
             raise ConfigError("recv() without a send() in flight")
         if terminal not in ("all", "ended"):
@@ -764,6 +765,7 @@ class TensorEnv:
         if self._closed:
             return
         self._closed = True
+        self._in_flight.clear()  # groups sent and not received are gone with the workers
         self.aggregator.close()
 
     def __enter__(self) -> "TensorEnv":

@@ -42,6 +42,8 @@ HIDDEN_INPUT = "hidden_in"
 HIDDEN_OUTPUT = "hidden_out"
 METADATA_KEY = "visfly"
 OPSET = 17
+MIN_OPSET = 12
+"""The lowest opset whose files onnxruntime was seen to run (11 and below: no float Clip kernel for some graphs)."""
 
 OBSERVATION_DOCS: dict[str, str] = {
     "state": ("position minus the task's reference point (navigation: the goal; hover, gap_crossing: the own "
@@ -228,7 +230,8 @@ class DeployedActor(nn.Module):
             x = x.float()
             if key in self.normalized:
                 i = self.normalized.index(key)
-                x = ((x.double() - getattr(self, f"mean_{i}")) / getattr(self, f"std_{i}")).clamp(-self.clip, self.clip).float()
+                # float64 for the shift and scale, float32 for the clip: onnxruntime has no float64 Clip before opset 12
+                x = ((x.double() - getattr(self, f"mean_{i}")) / getattr(self, f"std_{i}")).float().clamp(-self.clip, self.clip)
             obs[key] = x
         features = self.extractor(obs)
         hidden = None
@@ -303,9 +306,15 @@ def export_policy(policy: Any, out: str | Path, normalization: ObsNormalization 
         core: an optional recurrent core (:class:`RecurrentCore`); adds ``hidden_in``/``hidden_out``.
         metadata: merged into the file's ``visfly`` metadata (task, controller, rates...).
         cameras: the task's ``CameraSpec``s, to document the image inputs (field of view, mount).
-        opset: ONNX opset.
+        opset: ONNX opset, at least :data:`MIN_OPSET`.
+
+    Raises:
+        ConfigError: an opset below :data:`MIN_OPSET`.
     """
     import onnx
+
+    if not isinstance(opset, int) or opset < MIN_OPSET:
+        raise ConfigError(f"opset={opset!r}: the lowest checked against onnxruntime is {MIN_OPSET}")
 
     space = policy.observation_space
     entries = observation_entries(space)
@@ -374,15 +383,18 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 
     from visfly_dist.training.checkpoints import norm_path
-    from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint
+    from visfly_dist.training.evaluation import find_run_config, is_recurrent_checkpoint, missing_normalization
     from visfly_dist.training.run import env_kwargs
 
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file() or checkpoint.suffix != ".zip":
         raise ConfigError(f"--checkpoint {str(checkpoint)!r} must be an existing PPO .zip written by 'visfly-dist train'")
+    run_cfg = find_run_config(checkpoint)
+    if run_cfg is not None and run_cfg.task != task:
+        raise ConfigError(f"{str(checkpoint)!r} was trained on task {run_cfg.task!r} (its config.json), not {task!r}")
+    missing_normalization(checkpoint, run_cfg)  # raises where the run normalised and NAME.norm.npz is not beside it
     if env_settings is None:
-        run_cfg = find_run_config(checkpoint)
-        env_settings = env_kwargs(run_cfg.resolved()) if run_cfg is not None and run_cfg.task == task else {}
+        env_settings = env_kwargs(run_cfg.resolved()) if run_cfg is not None else {}
     recurrent = is_recurrent_checkpoint(checkpoint)
     model: OnPolicyAlgorithm
     core: LstmCore | None = None

@@ -19,6 +19,7 @@ zeros at an episode's start (the runner does: ``OnnxPolicy.act`` carries it, ``r
 from __future__ import annotations
 
 import argparse
+import sys
 
 from visfly_dist.training.config import parse_override
 
@@ -36,16 +37,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from visfly_dist.errors import ConfigError
+    from visfly_dist.tasks import task_class
     from visfly_dist.training.config import TrainConfig
-    from visfly_dist.training.evaluation import find_run_config
+    from visfly_dist.training.evaluation import find_run_config, missing_normalization
     from visfly_dist.training.export import describe, export_checkpoint
     from visfly_dist.training.ppo import env_kwargs
 
     settings = None
+    run_cfg = find_run_config(Path(args.checkpoint))
+    warning = missing_normalization(Path(args.checkpoint), run_cfg)  # raises where the run normalised
+    if warning is not None:
+        print(f"visfly-dist export: warning: {warning}", file=sys.stderr, flush=True)
     if args.set:
-        run_cfg = find_run_config(Path(args.checkpoint))
+        given = dict(parse_override(item) for item in args.set)
+        fields = task_class(args.task).config_class.field_names()
+        unknown = sorted(set(given) - set(fields))
+        if unknown:  # they would only fill the metadata: a typo would leave the file's rate or controller wrong
+            raise ConfigError(f"unknown setting(s) {unknown} for task {args.task!r}; valid: {sorted(fields)}")
         cfg = run_cfg if run_cfg is not None and run_cfg.task == args.task else TrainConfig(task=args.task)
-        cfg.overrides = {**cfg.overrides, **dict(parse_override(item) for item in args.set)}
+        cfg.overrides = {**cfg.overrides, **given}
         settings = env_kwargs(cfg.resolved())
     info = export_checkpoint(args.task, args.checkpoint, args.out, settings, opset=args.opset)
     print(describe(info))
