@@ -115,6 +115,9 @@ def run_sequence(policy: OnnxPolicy, observations: dict[str, np.ndarray]) -> dic
     Returns:
         ``action`` and ``command`` shaped ``(T, [B,] 4)``, ``latency_ms`` ``(T,)``.
     """
+    missing = [n for n in policy.observation_names if n not in observations]
+    if missing:
+        raise KeyError(f"the observations lack the policy's inputs {missing}; they hold {sorted(observations)}")
     first = policy.observation_names[0]
     spec = next((i for i in policy.metadata.get("inputs", []) if i["name"] == first), None)
     rank = len(spec["shape"]) if spec is not None else len(policy.session.get_inputs()[0].shape) - 1
@@ -162,7 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.observations:
         with np.load(args.observations, allow_pickle=False) as data:
             observations = {k: data[k] for k in data.files}
-        result = run_sequence(policy, observations)
+        try:
+            result = run_sequence(policy, observations)
+        except KeyError as exc:
+            parser.error(f"{args.observations}: {exc.args[0]}")
         lat = result["latency_ms"]
         budget = f" (budget {1e3 / policy.control_rate_hz:.1f} ms per step)" if policy.control_rate_hz else ""
         print(f"{len(lat)} steps, latency median {np.median(lat):.3f} ms, max {lat.max():.3f} ms{budget}")

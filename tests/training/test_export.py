@@ -147,6 +147,18 @@ def test_export_refuses_what_would_write_a_wrong_file(recorded: dict, tmp_path: 
     assert not (tmp_path / "x.onnx").exists()
 
 
+def test_the_runner_names_inputs_its_observations_lack(recorded: dict, tmp_path: Path) -> None:
+    out = recorded["run_dir"] / "policy.onnx"
+    if not out.exists():
+        assert main(["export", recorded["task"], "--checkpoint", str(recorded["checkpoint"]), "--out", str(out)]) == 0
+    renamed = {("State" if k == "state" else k): v for k, v in recorded["observations"].items()}
+    np.savez(tmp_path / "renamed.npz", **renamed)
+    done = subprocess.run([sys.executable, "-c", NO_TORCH, str(RUNNER), str(out), "--observations",
+                           str(tmp_path / "renamed.npz")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "lack the policy's inputs ['state']; they hold" in done.stderr and "'State'" in done.stderr
+
+
 def test_opset_12_runs_in_onnxruntime_as_17_does(recorded: dict) -> None:
     run_dir, task = recorded["run_dir"], recorded["task"]
     out = run_dir / "policy12.onnx"
