@@ -183,5 +183,52 @@ def test_loads_after_the_first_step_run_below_the_serving_thread(make_worker, mo
     assert _call(worker, _load("before"))[0]
     ok, reply = _call(worker, StepRequest((ScenePoses("before", np.array([[1, 0, 1, 1, 0, 0, 0]], np.float32)),)).to_message())
     assert ok, reply
-    assert _call(worker, _load("after"))[0]
+    assert _call(worker, _load("after", "gen:pillars?seed=1"))[0]  # another source: built (one already held is shared)
     assert niceness == {"before": own, "after": loads.BACKGROUND_LOAD_NICE}
+
+
+def test_one_file_over_many_keys_is_built_once_and_shared_until_its_last_key_goes(make_worker, scene_root):
+    import trimesh
+
+    trimesh.creation.box((1.0, 1.0, 2.0), trimesh.transformations.translation_matrix((3, 0, 1))).export(
+        scene_root / "shared_box.ply")
+    worker = make_worker()
+    assert _call(worker, _load("a", "shared_box.ply"))[0]
+    ok, reply = _call(worker, _load("b", "shared_box.ply"))  # a second slot of the same file
+    assert ok and reply["scene_key"] == "b" and reply["num_triangles"] == 12
+    a, b = worker._scenes.get("a"), worker._scenes.get("b")
+    assert b.renderer is a.renderer and b.queries is a.queries and b.scene is a.scene  # built once
+    other = _load("c", "shared_box.ply")
+    other["drone_radius"] = 0.3  # other queries: built anew
+    assert _call(worker, other)[0] and worker._scenes.get("c").queries is not a.queries
+    ok_a, step_a = _call(worker, _step("a"))
+    assert _call(worker, UnloadScene("a").to_message())[0]  # b still serves, its renderer open
+    ok_b, step_b = _call(worker, _step("b"))
+    assert ok_a and ok_b and np.array_equal(step_a["images"]["depth"], step_b["images"]["depth"])
+    assert np.array_equal(step_a["distance"], step_b["distance"])
+    assert _call(worker, UnloadScene("b").to_message())[0]
+    assert _call(worker, _load("d", "shared_box.ply"))[0]  # the last key gone: built again
+    assert worker._scenes.get("d").renderer is not a.renderer
+
+
+def test_loads_of_one_file_that_arrive_together_build_it_once(make_worker, scene_root):
+    """A start-up's burst: every slot of a one-file dataset asks at once; the first builds, the others wait
+    for it and share it; one unloaded while it waits is answered as cancelled and the rest go on."""
+    import time
+
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=4).export(scene_root / "burst.ply")
+    worker = make_worker()
+    answers: dict[str, tuple[bool, dict]] = {}
+    for key in ("k0", "k1", "k2", "k3"):
+        worker.submit(encode(_load(key, "burst.ply")), lambda ok, body, key=key: answers.__setitem__(key, (ok, decode(body))))
+    worker.submit(encode(UnloadScene("k2").to_message()), lambda ok, body: answers.__setitem__("unload", (ok, decode(body))))
+    deadline = time.monotonic() + 60
+    while len(answers) < 5 and time.monotonic() < deadline:
+        worker._serve_one(0.05)
+    assert answers["unload"][0] and not answers["k2"][0] and "cancelled" in answers["k2"][1]["message"]
+    assert all(answers[k][0] and answers[k][1]["num_triangles"] == 5120 for k in ("k0", "k1", "k3"))
+    scenes = [worker._scenes.get(k) for k in ("k0", "k1", "k3")]
+    assert all(s.renderer is scenes[0].renderer and s.queries is scenes[0].queries for s in scenes)
+    assert worker._scenes.keys() == ["k0", "k1", "k3"] and not worker._scenes.loading_keys()

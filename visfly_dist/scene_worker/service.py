@@ -55,7 +55,7 @@ from visfly_dist.scene_worker.loads import LoadJob, Respond, SceneLoader, parall
 from visfly_dist.scene_worker.queries import query_scenes
 from visfly_dist.scene_worker.render_base import BACKEND_CHOICES, gl_device_name, render_scenes_into
 from visfly_dist.scene_worker.render_raycast import default_tracer
-from visfly_dist.scene_worker.state import PreparedScene, SceneTable, assemble_scene
+from visfly_dist.scene_worker.state import LoadedScene, PreparedScene, SceneTable, assemble_scene, same_scene
 from visfly_dist.scene_worker.timing import StageTimer
 from visfly_dist.scenes import sample_free_positions
 
@@ -130,6 +130,7 @@ class SceneWorker:
         # The inbox holds Zenoh queries (from Zenoh's thread) and finished loads (from the loader).
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._loader = SceneLoader(roots, backend, threads, parallel_loads(threads), LOAD_RESERVE_BYTES, self._inbox.put)
+        self._waiting_for_twin: list[LoadJob] = []  # loads of a scene another key's load is building
         self._stepping = False  # a step request was served
         self._stopping = False
         self._started = time.monotonic()
@@ -256,6 +257,7 @@ class SceneWorker:
                                       f"worker {self.worker_id!r} is shutting down")
         for job in self._scenes.pop_loading():
             job.respond(False, shutting_down)
+        self._waiting_for_twin.clear()
         while True:
             try:
                 item = self._inbox.get_nowait()
@@ -390,11 +392,50 @@ class SceneWorker:
         if key not in self._scenes and len(self._scenes) >= self.limits.max_scenes:
             raise SceneError(f"this worker holds {len(self._scenes)} scenes, its bound (--max-scenes); "
                              "unload one or load on another worker", code=ErrorCode.OVERLOADED)
+        twin = self._scenes.serving(request)
+        if twin is not None:  # one file over many slots: its meshes, renderer and queries serve every key
+            loaded = twin.shared_as(key)
+            self._scenes.put(loaded)
+            log.info("scene %r shares the scene of %r (%r)", key, twin.key, request.source)
+            self._timer.add("load_scene", time.perf_counter() - start)
+            respond(True, _loaded_reply(loaded))
+            return
         self._check_memory("before loading")
         job = LoadJob(request, respond, start)
+        twin_building = self._building(request)
         self._scenes.begin_load(key, job)
+        if twin_building:  # the same scene under another key (a start-up's burst): shared once built
+            self._waiting_for_twin.append(job)
+            return
         self._loader.add(job)
         self._start_loads()
+
+    def _building(self, request: LoadScene) -> bool:
+        """Whether a load in progress (not one waiting for a twin) builds the scene ``request`` asks for."""
+        return any(same_scene(job.request, request) for job in self._loader_jobs())
+
+    def _loader_jobs(self) -> list[LoadJob]:
+        """The loads in progress that build their scene (those waiting for a twin do not)."""
+        return [job for job in self._scenes.loading_jobs() if all(job is not w for w in self._waiting_for_twin)]
+
+    def _take_twins(self) -> None:
+        """Serve the loads that waited for a twin being built: shared if it was built, else built now."""
+        waiting, self._waiting_for_twin = self._waiting_for_twin, []
+        for job in waiting:
+            key = job.request.scene_key
+            if not self._scenes.owns_load(key, job):  # unloaded while it waited (already answered)
+                continue
+            twin = self._scenes.serving(job.request)
+            if twin is not None:
+                self._scenes.end_load(key, job)
+                loaded = twin.shared_as(key)
+                self._scenes.put(loaded)
+                self._timer.add("load_scene", time.perf_counter() - job.start)
+                job.respond(True, _loaded_reply(loaded))
+            elif any(same_scene(other.request, job.request) for other in self._loader_jobs()):
+                self._waiting_for_twin.append(job)
+            else:  # its twin failed or was unloaded: built on its own (and answered on its own)
+                self._loader.add(job)
 
     def _start_loads(self) -> None:
         """Start every waiting load the loader lets start now; one the worker's memory no longer
@@ -417,6 +458,7 @@ class SceneWorker:
         try:
             self._install(job)
         finally:
+            self._take_twins()
             self._start_loads()
 
     def _install(self, job: LoadJob) -> None:
@@ -439,9 +481,7 @@ class SceneWorker:
             scene = loaded.scene
             log.info("loaded scene %r from %r: %d triangles, backend %s",
                      request.scene_key, request.source, scene.num_triangles, loaded.renderer.name)
-            body = encode({"type": "scene_loaded", "scene_key": request.scene_key, "bounds": scene.bounds,
-                           "num_triangles": scene.num_triangles, "num_objects": len(scene.objects),
-                           "backend": loaded.renderer.name, "metadata": scene.metadata})
+            body = _loaded_reply(loaded)
         except Exception as exc:
             if prepared is not None:
                 prepared.discard()
@@ -563,3 +603,11 @@ class SceneWorker:
                 "backend": self.backend, "tracer": self.tracer, "gl_device": self.gl_device, "scenes": self._scenes.keys(), "loading": self._scenes.loading_keys(),  # noqa: E501
                 "limits": self.limits.to_dict(), "memory_bytes": resident_bytes() or 0, "uptime_s": time.monotonic() - self._started,
                 "image_segments": self._segments.names(), "timings": self._timer.summary()}
+
+
+def _loaded_reply(loaded: LoadedScene) -> bytes:
+    """The encoded ``scene_loaded`` reply of a load."""
+    scene = loaded.scene
+    return encode({"type": "scene_loaded", "scene_key": loaded.key, "bounds": scene.bounds,
+                   "num_triangles": scene.num_triangles, "num_objects": len(scene.objects),
+                   "backend": loaded.renderer.name, "metadata": scene.metadata})

@@ -31,6 +31,8 @@ class LoadedScene:
         renderer: renders ``cameras`` of many poses at once.
         queries: nearest obstacle and collision per position.
         multi_agent: agents see each other (drones are drawn in the images).
+        source: where the scene came from (a file, ``gen:...``), as the load named it.
+        drone_radius: the drones' radius the queries and the renderer were built for.
     """
 
     key: str
@@ -39,6 +41,19 @@ class LoadedScene:
     renderer: Renderer
     queries: ObstacleQueries
     multi_agent: bool
+    source: str = ""
+    drone_radius: float = 0.0
+
+    def serves(self, request: LoadScene) -> bool:
+        """Whether this scene is what ``request`` would build (:func:`same_scene`): its meshes, renderer
+        and queries can serve the request's key too."""
+        return (self.source == request.source and self.cameras == tuple(request.cameras)
+                and self.drone_radius == request.drone_radius and self.multi_agent == request.multi_agent)
+
+    def shared_as(self, key: str) -> "LoadedScene":
+        """The same scene served under another key (nothing is copied or built)."""
+        return LoadedScene(key, self.scene, self.cameras, self.renderer, self.queries, self.multi_agent,
+                           self.source, self.drone_radius)
 
     @property
     def pixels_per_agent(self) -> int:
@@ -58,6 +73,12 @@ class PreparedScene:
     def discard(self) -> None:
         if self.renderer is not None:
             self.renderer.close()
+
+
+def same_scene(a: LoadScene, b: LoadScene) -> bool:
+    """Whether two loads build the same scene: same source, cameras, drone radius and multi-agent drawing."""
+    return (a.source == b.source and tuple(a.cameras) == tuple(b.cameras) and a.drone_radius == b.drone_radius
+            and a.multi_agent == b.multi_agent)
 
 
 def prepare_scene(request: LoadScene, roots: Sequence[Path], backend: str, threads: int | None = None,
@@ -87,7 +108,7 @@ def assemble_scene(prepared: PreparedScene, backend: str) -> LoadedScene:
     request = prepared.request
     renderer = prepared.renderer or _renderer(request, prepared.scene, backend)
     return LoadedScene(request.scene_key, prepared.scene, request.cameras, renderer, prepared.queries,
-                       request.multi_agent)
+                       request.multi_agent, request.source, request.drone_radius)
 
 
 def _backend_for(request: LoadScene, backend: str) -> str:
@@ -127,7 +148,16 @@ class SceneTable:
         old = self._scenes.pop(loaded.key, None)
         self._scenes[loaded.key] = loaded
         if old is not None:
-            old.renderer.close()
+            self._release(old)
+
+    def serving(self, request: LoadScene) -> LoadedScene | None:
+        """A loaded scene that is what ``request`` would build (:meth:`LoadedScene.serves`), if any."""
+        return next((s for s in self._scenes.values() if s.serves(request)), None)
+
+    def _release(self, gone: LoadedScene) -> None:
+        """Close the renderer of a scene no longer served, unless another key shares it."""
+        if not any(s.renderer is gone.renderer for s in self._scenes.values()):
+            gone.renderer.close()
 
     def get(self, key: str) -> LoadedScene:
         """The scene loaded under ``key``; SceneError (``scene_loading`` or ``unknown_scene``) otherwise."""
@@ -169,8 +199,7 @@ class SceneTable:
         self._last = _NO_LOOKUP
         job = self._loading.pop(key, None)
         if job is None or key in self._scenes:
-            self.get(key).renderer.close()
-            del self._scenes[key]
+            self._release(self._scenes.pop(self.get(key).key))
         return job
 
     def begin_load(self, key: str, job: Any) -> None:
@@ -202,6 +231,10 @@ class SceneTable:
     def keys(self) -> list[str]:
         return sorted(self._scenes)
 
+    def loading_jobs(self) -> list[Any]:
+        """The tokens of the loads in progress."""
+        return list(self._loading.values())
+
     def loading_keys(self) -> list[str]:
         return sorted(self._loading)
 
@@ -216,4 +249,4 @@ class SceneTable:
         self._loading.clear()
         while self._scenes:
             _, loaded = self._scenes.popitem()
-            loaded.renderer.close()
+            self._release(loaded)
