@@ -441,21 +441,17 @@ class Aggregator:
         slot_sorted = slot_of[order]
         cuts = (np.flatnonzero(slot_sorted[1:] != slot_sorted[:-1]) + 1).tolist()
         starts, ends, slots = [0, *cuts], [*cuts, len(agents)], slot_sorted[[0, *cuts]].tolist()
-        keys = [self._pool_key(s, spec) for s in slots]  # each agent's next episode starts in its slot's
-        missing = [s for s, key in zip(slots, keys) if key not in self._spawns]  # next scene (an armed swap's)
-        if missing:
+        missing = [s for s in slots if self._pool_key(s, spec) not in self._spawns]  # each agent's next episode
+        if missing:  # starts in its slot's next scene (an armed swap's)
             self._fetch_spawn_pools_now(missing, spec)
-            keys = [self._pool_key(s, spec) for s in slots]  # again: a refresh waited for may arm a swap
         draws = self._streams.draw(agents)[order]
         picked = []
-        waited = False
-        for slot, key, start, end in zip(slots, keys, starts, ends):
-            if waited:  # a refresh waited for may have armed a swap: the key is looked up again
-                key = self._pool_key(slot, spec)
+        for slot, start, end in zip(slots, starts, ends):
+            key = self._pool_key(slot, spec)  # here, not before: a refresh waited for may arm a swap
             positions, half_drawn = self._spawns.draw(key, draws[start:end])
             picked.append(positions)
             if half_drawn:
-                waited = self._keep_fresh(key) or waited
+                self._keep_fresh(key)
         out[order] = picked[0] if len(picked) == 1 else np.concatenate(picked)
         return out
 
@@ -476,22 +472,18 @@ class Aggregator:
             return s.incoming.move.worker, s.incoming.move.key, s.incoming.move.source
         return s.worker, s.key, s.source
 
-    def _keep_fresh(self, key: PoolKey) -> bool:
+    def _keep_fresh(self, key: PoolKey) -> None:
         """Ask for a pool's refresh at half its size; swap it in once the whole pool was drawn
-        (called once half of it was drawn: before, neither is due). True when it waited for the
-        refresh and took in the background's replies (which may arm swaps)."""
+        (called once half of it was drawn: before, neither is due)."""
         in_flight = [j.pending for j in self._background if isinstance(j, SpawnJob) and j.key == key]
         worker, scene_key, _ = self._next_scene(key.slot)
         if self._spawns.wants_refresh(key, bool(in_flight)) and worker is not None:
             self._background.append(self._spawns.fetch(key, worker, scene_key, refresh=True))
-            return False
-        if not self._spawns.used_up(key):
-            return False
-        if in_flight:  # bounded wait, so the same seed gives the same positions
-            self._pool.wait_any([in_flight], self.pool_config.step_timeout_s)
-            self._apply_background()
-        self._spawns.replace(key)
-        return bool(in_flight)
+        elif self._spawns.used_up(key):
+            if in_flight:  # bounded wait, so the same seed gives the same positions
+                self._pool.wait_any([in_flight], self.pool_config.step_timeout_s)
+                self._apply_background()
+            self._spawns.replace(key)
 
     def _fetch_spawn_pools_now(self, slots: list[int], spec: SpawnSpec) -> None:
         """Blocking first fetch of the pools of ``slots`` (at reset, before any step uses them)."""

@@ -394,11 +394,7 @@ class SceneWorker:
                              "unload one or load on another worker", code=ErrorCode.OVERLOADED)
         twin = self._scenes.serving(request)
         if twin is not None:  # one file over many slots: its meshes, renderer and queries serve every key
-            loaded = twin.shared_as(key)
-            self._scenes.put(loaded)
-            log.info("scene %r shares the scene of %r (%r)", key, twin.key, request.source)
-            self._timer.add("load_scene", time.perf_counter() - start)
-            respond(True, _loaded_reply(loaded))
+            self._share(twin, key, respond, start)
             return
         self._check_memory("before loading")
         job = LoadJob(request, respond, start)
@@ -418,6 +414,14 @@ class SceneWorker:
         """The loads in progress that build their scene (those waiting for a twin do not)."""
         return [job for job in self._scenes.loading_jobs() if all(job is not w for w in self._waiting_for_twin)]
 
+    def _share(self, twin: LoadedScene, key: str, respond: Respond, start: float) -> None:
+        """Serve ``twin`` under ``key`` too, and answer that load."""
+        loaded = twin.shared_as(key)
+        self._scenes.put(loaded)
+        log.info("scene %r shares the scene of %r (%r)", key, twin.key, twin.built_by.source)
+        self._timer.add("load_scene", time.perf_counter() - start)
+        respond(True, _loaded_reply(loaded))
+
     def _take_twins(self) -> None:
         """Serve the loads that waited for a twin being built: shared if it was built, else built now."""
         waiting, self._waiting_for_twin = self._waiting_for_twin, []
@@ -428,11 +432,8 @@ class SceneWorker:
             twin = self._scenes.serving(job.request)
             if twin is not None:
                 self._scenes.end_load(key, job)
-                loaded = twin.shared_as(key)
-                self._scenes.put(loaded)
-                self._timer.add("load_scene", time.perf_counter() - job.start)
-                job.respond(True, _loaded_reply(loaded))
-            elif any(same_scene(other.request, job.request) for other in self._loader_jobs()):
+                self._share(twin, key, job.respond, job.start)
+            elif self._building(job.request):
                 self._waiting_for_twin.append(job)
             else:  # its twin failed or was unloaded: built on its own (and answered on its own)
                 self._loader.add(job)

@@ -31,8 +31,7 @@ class LoadedScene:
         renderer: renders ``cameras`` of many poses at once.
         queries: nearest obstacle and collision per position.
         multi_agent: agents see each other (drones are drawn in the images).
-        source: where the scene came from (a file, ``gen:...``), as the load named it.
-        drone_radius: the drones' radius the queries and the renderer were built for.
+        built_by: the load that built it (keys that share it keep their first key's).
     """
 
     key: str
@@ -41,19 +40,11 @@ class LoadedScene:
     renderer: Renderer
     queries: ObstacleQueries
     multi_agent: bool
-    source: str = ""
-    drone_radius: float = 0.0
-
-    def serves(self, request: LoadScene) -> bool:
-        """Whether this scene is what ``request`` would build (:func:`same_scene`): its meshes, renderer
-        and queries can serve the request's key too."""
-        return (self.source == request.source and self.cameras == tuple(request.cameras)
-                and self.drone_radius == request.drone_radius and self.multi_agent == request.multi_agent)
+    built_by: LoadScene
 
     def shared_as(self, key: str) -> "LoadedScene":
         """The same scene served under another key (nothing is copied or built)."""
-        return LoadedScene(key, self.scene, self.cameras, self.renderer, self.queries, self.multi_agent,
-                           self.source, self.drone_radius)
+        return LoadedScene(key, self.scene, self.cameras, self.renderer, self.queries, self.multi_agent, self.built_by)
 
     @property
     def pixels_per_agent(self) -> int:
@@ -108,7 +99,7 @@ def assemble_scene(prepared: PreparedScene, backend: str) -> LoadedScene:
     request = prepared.request
     renderer = prepared.renderer or _renderer(request, prepared.scene, backend)
     return LoadedScene(request.scene_key, prepared.scene, request.cameras, renderer, prepared.queries,
-                       request.multi_agent, request.source, request.drone_radius)
+                       request.multi_agent, request)
 
 
 def _backend_for(request: LoadScene, backend: str) -> str:
@@ -151,8 +142,9 @@ class SceneTable:
             self._release(old)
 
     def serving(self, request: LoadScene) -> LoadedScene | None:
-        """A loaded scene that is what ``request`` would build (:meth:`LoadedScene.serves`), if any."""
-        return next((s for s in self._scenes.values() if s.serves(request)), None)
+        """A loaded scene that is what ``request`` would build (:func:`same_scene`), if any: its meshes,
+        renderer and queries can serve the request's key too."""
+        return next((s for s in self._scenes.values() if same_scene(s.built_by, request)), None)
 
     def _release(self, gone: LoadedScene) -> None:
         """Close the renderer of a scene no longer served, unless another key shares it."""
@@ -199,7 +191,9 @@ class SceneTable:
         self._last = _NO_LOOKUP
         job = self._loading.pop(key, None)
         if job is None or key in self._scenes:
-            self._release(self._scenes.pop(self.get(key).key))
+            gone = self.get(key)  # SceneError for a key neither loaded nor loading
+            del self._scenes[key]
+            self._release(gone)
         return job
 
     def begin_load(self, key: str, job: Any) -> None:

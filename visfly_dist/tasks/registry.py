@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import Any, Iterable
 
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.errors import ConfigError
@@ -42,9 +42,15 @@ def make_env(name: str, num_envs: int | None = None, **overrides: Any) -> DroneE
     """
     cls = task_class(name)
     config_class = cls.config_class
-    unknown = sorted(set(overrides) - set(config_class.field_names()))
-    if unknown:
-        raise ConfigError(f"unknown setting(s) {unknown} for task {name!r}; valid: {sorted(config_class.field_names())}")
+    check_setting_names(name, overrides)
     if num_envs is not None:
         overrides["num_envs"] = num_envs
     return cls(config_class(**overrides))
+
+
+def check_setting_names(name: str, settings: Iterable[str]) -> None:
+    """ConfigError naming the settings that are not fields of task ``name``'s config, and the valid ones."""
+    fields = task_class(name).config_class.field_names()
+    unknown = sorted(set(settings) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown setting(s) {unknown} for task {name!r}; valid: {sorted(fields)}")

@@ -37,8 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from visfly_dist.errors import ConfigError
-    from visfly_dist.tasks import task_class
+    from visfly_dist.tasks.registry import check_setting_names
     from visfly_dist.training.config import TrainConfig
     from visfly_dist.training.evaluation import find_run_config, missing_normalization
     from visfly_dist.training.export import describe, export_checkpoint
@@ -51,10 +50,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"visfly-dist export: warning: {warning}", file=sys.stderr, flush=True)
     if args.set:
         given = dict(parse_override(item) for item in args.set)
-        fields = task_class(args.task).config_class.field_names()
-        unknown = sorted(set(given) - set(fields))
-        if unknown:  # they would only fill the metadata: a typo would leave the file's rate or controller wrong
-            raise ConfigError(f"unknown setting(s) {unknown} for task {args.task!r}; valid: {sorted(fields)}")
+        check_setting_names(args.task, given)  # they only fill the metadata: a typo would leave a wrong rate there
         cfg = run_cfg if run_cfg is not None and run_cfg.task == args.task else TrainConfig(task=args.task)
         cfg.overrides = {**cfg.overrides, **given}
         settings = env_kwargs(cfg.resolved())
