@@ -39,6 +39,7 @@ import logging
 import os
 import shutil
 import socket
+import subprocess
 import tempfile
 import threading
 import time
@@ -63,6 +64,8 @@ log = logging.getLogger(__name__)
 STOP_GRACE_S = 5.0
 POLL_S = 0.02
 LIVELINESS_QUEUE = 4096
+EXIT_WAIT_S = 0.5
+"""How long a dropped local worker's process is waited for, to tell how it ended (once per drop)."""
 PROBE_TIMEOUT_S = 1.0  # a health reply takes milliseconds; a hung worker costs this much more before it is replaced
 RECHECK_S = (1.0, 16.0)
 """First and longest wait between health probes of a banned worker whose token stays (doubling in between)."""
@@ -400,7 +403,11 @@ class WorkerPool:
         """``; it exited (CODE); the end of its log PATH: ...`` for a local worker whose process
         ended, else nothing: where to read why it died (the log is kept with a ``log_dir``)."""
         worker = self._local.get(worker_id)
-        if worker is None or worker.running():
+        if worker is None:
+            return ""
+        try:  # a killed process can be reaped only once all its threads are gone, a moment after its channel closed
+            worker.process.wait(timeout=EXIT_WAIT_S)
+        except subprocess.TimeoutExpired:  # alive (hung): nothing to tell
             return ""
         return f"; it exited ({worker.process.returncode}); the end of its log {worker.log_path}: {worker.log_tail(400)!r}"
 
