@@ -70,6 +70,30 @@ def test_policy_kwargs_build_an_sb3_policy_that_acts() -> None:
     assert actions.shape == (5, 4) and np.all(np.abs(actions) <= 1)
 
 
+@pytest.mark.parametrize("algorithm", ["SAC", "TD3", "DDPG"])
+def test_policy_kwargs_build_an_off_policy_actor_and_critic(algorithm: str) -> None:
+    """Off-policy critics read ``qf`` (SB3 asserts it): the same kwargs serve SAC, TD3 and DDPG."""
+    import stable_baselines3
+    from stable_baselines3.common.env_util import DummyVecEnv
+
+    space = dict_space(state=STATE, depth=spaces.Box(0.0, 20.0, (1, 32, 32), np.float32))
+
+    class SpacesOnly(DummyVecEnv):
+        def __init__(self) -> None:  # the algorithm reads the spaces only until it learns
+            self.num_envs, self.observation_space = 1, space
+            self.action_space = spaces.Box(-1, 1, (4,), np.float32)
+
+    model = getattr(stable_baselines3, algorithm)("MultiInputPolicy", SpacesOnly(), policy_kwargs=visfly_policy_kwargs(),
+                                                  buffer_size=10, device="cpu")
+    critic = model.policy.critic.q_networks[0]
+    assert [m.out_features for m in critic if isinstance(m, torch.nn.Linear)] == [64, 64, 1]
+    assert isinstance(model.policy.actor.features_extractor, VisflyExtractor)
+    space.seed(2)
+    actions, _ = model.predict({k: np.stack([s.sample() for _ in range(3)]) for k, s in space.spaces.items()},
+                               deterministic=True)
+    assert actions.shape == (3, 4) and np.all(np.abs(actions) <= 1)
+
+
 def test_errors_name_the_bad_value() -> None:
     with pytest.raises(ConfigError, match="backbone='vgg'.*accepted"):
         VisflyExtractor(dict_space(depth=DEPTH), backbone="vgg")

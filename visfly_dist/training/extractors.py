@@ -367,6 +367,9 @@ class VisflyExtractor(BaseFeaturesExtractor):
 def visfly_policy_kwargs(backbone: str = "visfly-cnn", depth_scale: str = "linear") -> dict[str, Any]:
     """SB3 ``policy_kwargs`` for ``"MultiInputPolicy"``: VisflyExtractor, actor/critic 64-64 ReLU.
 
+    ``net_arch`` names the critic twice, as on-policy (``vf``: PPO, A2C) and off-policy (``qf``:
+    SAC, TD3, DDPG) algorithms call it; each reads its own key, so one dict serves them all.
+
     ``normalize_images=False`` because the extractor normalises images itself (float depth in
     metres would otherwise be treated as a flat vector or divided by 255).
     """
@@ -375,7 +378,7 @@ def visfly_policy_kwargs(backbone: str = "visfly-cnn", depth_scale: str = "linea
     return dict(
         features_extractor_class=VisflyExtractor,
         features_extractor_kwargs=dict(backbone=backbone, depth_scale=depth_scale),
-        net_arch=dict(pi=[64, 64], vf=[64, 64]),
+        net_arch=dict(pi=[64, 64], vf=[64, 64], qf=[64, 64]),
         activation_fn=nn.ReLU,
         normalize_images=False,
     )
