@@ -46,6 +46,11 @@ class ConfigError(VisflyError, ValueError):
     code = ErrorCode.BAD_REQUEST
 
 
+class TaskHookError(ConfigError):
+    """A task hook (``get_reward``, ``get_success``, ``get_failure``, ``get_observation``) returned
+    something its contract does not allow: a wrong shape, dtype or set of keys."""
+
+
 class SceneError(VisflyError):
     """A scene cannot be found, loaded, generated or is outside the allowed roots."""
 

@@ -55,14 +55,17 @@ def test_vector_view_reset_step_and_same_step_autoreset(vec_env):
         assert vec_env.observation_space.contains(final) and final["step"][0] == 3
         assert obs["step"][i, 0] == 0
     assert infos["final_info"]["is_success"].tolist() == [False, False]
+    assert not [k for k in infos["final_info"] if "final" in k]  # the step's own infos, not the final entries
+    assert view.render() is None  # no render mode, as Gymnasium's envs without one
     assert infos["collision"].shape == (2,) and infos["_collision"].all()
 
 
 def test_single_agent_view_passes_gymnasium_and_sb3_checkers(one_env):
     view = one_env.as_gymnasium_env()
     assert isinstance(view, gymnasium.Env)
-    gym_check_env(view, skip_render_check=True, skip_close_check=True)
-    sb3_check_env(view, warn=False, skip_render_check=True)
+    gym_check_env(view, skip_close_check=True)
+    sb3_check_env(view, warn=False, skip_render_check=True)  # its render check closes the env
+    assert view.render() is None and one_env.get_images() == [None]
 
 
 def test_single_agent_view_returns_the_terminal_observation(one_env):

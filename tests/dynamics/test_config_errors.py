@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import pytest
 import torch
@@ -57,6 +58,17 @@ def test_bad_actions_are_rejected_in_step():
         quad.step(state, bad)
     unchecked = Quadrotor(DynamicsConfig(check_actions=False), num_agents=3)
     assert bool(torch.isnan(unchecked.step(state, bad).pos).any())     # the caller opted out
+
+
+def test_checking_actions_that_need_gradients_warns_of_nothing():
+    """BPTT's actions require grad: the finiteness check reads them without a torch warning."""
+    quad = Quadrotor(DynamicsConfig(), num_agents=2)
+    action = torch.zeros(2, 4, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        state = quad.step(quad.initial_state(), action)
+    state.pos.sum().backward()
+    assert action.grad is not None and torch.isfinite(action.grad).all()
 
 
 def test_airframe_files_are_validated(tmp_path):

@@ -35,6 +35,7 @@ from visfly_dist.aggregator.assembler import empty_observation
 from visfly_dist.client.buffer_pool import BufferPool
 from visfly_dist.client.config import STATE_NOISE_KEY, EnvConfig
 from visfly_dist.client.frame import SensorFrame, row_span
+from visfly_dist.client.hook_checks import check_flags, check_observation, check_reward
 from visfly_dist.client.lost_holds import LostHolds
 from visfly_dist.client.noise import SensorNoise
 from visfly_dist.dynamics import Quadrotor, QuadState, load_airframe
@@ -195,6 +196,7 @@ class TensorEnv:
         self._oob: tuple[QuadState, torch.Tensor, torch.Tensor] | None = None  # out_of_bounds of one state
         self._box: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # bounds, its lower and upper corners
         self._lost_holds = LostHolds(n, config.lost_hold_s)  # agents whose worker failed wait, up to a bound
+        self._hooks_checked = False  # set once the first step's hook outputs passed client.hook_checks
 
     # ----- task hooks ---------------------------------------------------------------------------
 
@@ -409,19 +411,28 @@ class TensorEnv:
         lost = self.frame.lost if full else self.frame.lost & live  # lost and not held: cut now
         any_lost = bool(obs.lost.any())  # else ``lost`` is all False (the group's rows are obs's): no masking
         success = self.get_success()
+        checking = not self._hooks_checked
+        if checking:
+            check_flags("get_success", success, self.num_envs)
         if any_lost:
             success = success & ~lost
         self.success = success if full else success & live
-        failure = self.get_failure() & ~self.success
+        failure = self.get_failure()
+        if checking:
+            check_flags("get_failure", failure, self.num_envs)
+        failure = failure & ~self.success
         if any_lost:
             failure = failure & ~lost
         self.failure = failure if full else failure & live
         reward = self.get_reward()
+        if checking:
+            check_reward(reward, self.num_envs)
         if not full and not bool(live.all()):
             reward = torch.where(live, reward, torch.zeros_like(reward))
         self.episode_return = self.episode_return + reward.detach()
         observation = self._observation()
         self.update_task_state()
+        self._hooks_checked = True  # every hook's output had its shape checked once
 
         terminated = self.success | self.failure if self.success_ends_episode else self.failure
         timed_out = self.episode_step >= self.config.max_episode_steps
@@ -623,6 +634,8 @@ class TensorEnv:
 
     def _observation(self) -> dict[str, torch.Tensor]:
         obs = self.get_observation()
+        if not self._hooks_checked:
+            check_observation(obs, self.observation_space, self.num_envs)
         if self._state_noise and "state" in obs:
             obs = {**obs, "state": self._state_noise(obs["state"], self.generator)}
         return obs

@@ -114,10 +114,11 @@ class GymnasiumVectorView(VectorEnv):
                 for key, value in obs.items():  # the last observation now, the first one next step
                     value[done] = final[key][done]
             else:
+                final_info = dict(infos)  # this step's infos, before the final entries join them
                 infos["final_obs"] = np.array([{k: v[i] for k, v in final.items()} if done[i] else None
                                                for i in range(self.num_envs)], dtype=object)
                 infos["_final_obs"] = done.copy()
-                infos["final_info"] = {k: v for k, v in infos.items() if not k.startswith("final")}
+                infos["final_info"] = final_info
                 infos["_final_info"] = done.copy()
         self._autoreset = done.copy()
         return obs, rewards, terminated, truncated, infos
@@ -130,6 +131,11 @@ class GymnasiumVectorView(VectorEnv):
             out[name] = info[key].detach().cpu().numpy().astype(bool)
             out[f"_{name}"] = np.ones(self.num_envs, dtype=bool)
         return out
+
+    def render(self) -> None:
+        """Nothing: the view has no render mode (``render_mode`` is ``None``), as Gymnasium's envs
+        without one. Images are in the observation; ``visfly-dist eval`` writes videos."""
+        return None
 
     def close_extras(self, **kwargs: Any) -> None:
         self.env.close()
@@ -167,6 +173,10 @@ class SingleAgentView(gymnasium.Env):
         if dones[0]:
             return dict(infos[0]["terminal_observation"]), float(rewards[0]), not truncated, truncated, info
         return {k: v[0] for k, v in obs.items()}, float(rewards[0]), False, False, info
+
+    def render(self) -> None:
+        """Nothing: no render mode (``render_mode`` is ``None``); see :meth:`GymnasiumVectorView.render`."""
+        return None
 
     def close(self) -> None:
         self.env.close()

@@ -56,6 +56,11 @@ class SB3VecEnv(TensorEnv, VecEnv):  # type: ignore[misc]  # spaces: Dict/Box he
             return self.reset()
         return self.to_numpy(self.reset_some_tensor(mask, seeds))
 
+    def get_images(self) -> list[None]:
+        """One ``None`` per agent: the env has no render mode, as SB3's ``DummyVecEnv`` answers
+        without one. Images are in the observation; ``visfly-dist eval`` writes videos."""
+        return [None] * self.num_envs
+
     def step_async(self, actions: np.ndarray) -> None:
         self._pending_actions = torch.as_tensor(np.asarray(actions), dtype=torch.float32, device=self.device)
 

@@ -219,7 +219,7 @@ class Quadrotor:
             shape = tuple(action.shape) if hasattr(action, "shape") else type(action).__name__
             raise ConfigError(f"action of shape {shape} must be a tensor of shape {expected} "
                               f"(num_agents, 4) in [-1, 1]")
-        if not math.isfinite(float(action.abs().max())):  # max propagates NaN: 2 operations, isfinite().all() 6
+        if not math.isfinite(float(action.detach().abs().max())):  # max propagates NaN: 2 operations, isfinite().all() 6
             bad = (~torch.isfinite(action)).any(dim=1).nonzero().flatten()[:8].tolist()
             raise ConfigError(f"action has NaN or infinite entries (agents {bad}...); actions must be "
                               "finite values in [-1, 1]")
