@@ -2,6 +2,7 @@
 
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -195,6 +196,38 @@ def test_close_is_idempotent_and_the_env_refuses_work_afterwards():
     env.close()
     with pytest.raises(ConfigError, match="closed"):
         env.reset()
+
+
+def test_a_start_that_fails_reports_its_own_error_and_leaves_no_worker():
+    """The env closes what it started when its workers do not come up, and the caller sees why
+    (an AttributeError from the half-built env's close used to hide it)."""
+    from visfly_dist.aggregator import PoolConfig
+    from visfly_dist.errors import NoWorkersError
+
+    before = _local_workers()
+    with pytest.raises(NoWorkersError, match=r"0 worker\(s\) came up within startup_timeout_s=0.05"):
+        make_counter(pool=PoolConfig(num_local_workers=1, backend="raycast", startup_timeout_s=0.05))
+    deadline = time.monotonic() + 10.0
+    while _local_workers() - before and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _local_workers() - before
+
+
+def _local_workers() -> set[int]:
+    """Pids of this process's worker children (``visfly_dist.cli worker``) that are still running."""
+    out = set()
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = open(f"/proc/{entry.name}/stat").read()
+            cmdline = open(f"/proc/{entry.name}/cmdline", "rb").read()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == os.getpid() and fields[0] != "Z" and b"worker" in cmdline:
+            out.add(int(entry.name))
+    return out
 
 
 def test_a_group_sent_before_close_is_not_received_after_it():

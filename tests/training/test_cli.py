@@ -138,8 +138,10 @@ def test_bad_setting_exits_2_before_any_worker(setting: str, message: str, tmp_p
     from visfly_dist.cli import main
 
     assert main(["train", "hover", "--set", setting, "--out", str(tmp_path / "x")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("visfly-dist train: error: ") and message in err[0]
+    assert "starting the env" not in captured.out  # nothing is said to start before the settings are checked
     assert not (tmp_path / "x").exists()
 
 

@@ -144,6 +144,9 @@ def test_export_refuses_what_would_write_a_wrong_file(recorded: dict, tmp_path: 
         (copy / name).write_bytes((recorded["run_dir"] / name).read_bytes())
     assert main(["export", task, "--checkpoint", str(copy / "final.zip"), "--out", str(tmp_path / "x.onnx")]) == 2
     assert "final.norm.npz' is missing: the run trained on normalised observations" in capsys.readouterr().err
+    (copy / "final.npz").write_bytes(b"")  # a BPTT/SHAC actor beside the run's config.json (normalize true)
+    assert main(["export", task, "--checkpoint", str(copy / "final.npz"), "--out", str(tmp_path / "x.onnx")]) == 2
+    assert "is a BPTT/SHAC actor (.npz): export takes PPO checkpoints (.zip) only" in capsys.readouterr().err
     assert not (tmp_path / "x.onnx").exists()
 
 

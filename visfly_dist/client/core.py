@@ -154,6 +154,7 @@ class TensorEnv:
         self._image_noise = {c.name: SensorNoise(config.noise.get(c.name, ()), c.kind, c.far) for c in self.cameras}
         self._state_noise = SensorNoise(config.noise.get(STATE_NOISE_KEY, ()), STATE_NOISE_KEY)
         self._closed = True
+        self._in_flight: list[_InFlight] = []  # before start: close() reads it should the start fail
         self._init_views(n, spaces.Dict(self.observation_space_dict()), spaces.Box(-1.0, 1.0, (4,), np.float32))
         self.aggregator = Aggregator(pool=config.pool, scenes=config.scene_set(), cameras=list(self.cameras or (PROBE_CAMERA,)),
                                      drone_radius=config.drone_radius, multi_agent=config.multi_agent,
@@ -184,7 +185,6 @@ class TensorEnv:
         self._prepared_obs = empty_observation(self.aggregator.cameras, n)
         self._switched = np.zeros(n, dtype=bool)  # scene changed mid-episode, not yet taken in
         self._next_scene = np.zeros(n, dtype=bool)  # next episode in a new scene, start not yet redrawn
-        self._in_flight: list[_InFlight] = []
         self.step_mask = torch.ones(n, dtype=torch.bool, device=self.device)
         self.agents_per_scene = config.agents_per_scene
         self.sim_time = 0.0   # s: where the moving obstacles are for the group being stepped or taken in

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 from typing import Any, Iterable
 
+from visfly_dist.client.config import EnvConfig
 from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.errors import ConfigError
 
@@ -40,12 +41,22 @@ def make_env(name: str, num_envs: int | None = None, **overrides: Any) -> DroneE
     Raises:
         ConfigError: unknown task or setting, or an invalid config (every problem listed).
     """
-    cls = task_class(name)
-    config_class = cls.config_class
+    return task_class(name)(task_config(name, num_envs, **overrides))
+
+
+def task_config(name: str, num_envs: int | None = None, **overrides: Any) -> EnvConfig:
+    """The config :func:`make_env` would build task ``name`` from, validated, with nothing started:
+    a caller that reports progress checks the settings before it says it is starting anything.
+
+    Raises:
+        ConfigError: as :func:`make_env`.
+    """
     check_setting_names(name, overrides)
     if num_envs is not None:
         overrides["num_envs"] = num_envs
-    return cls(config_class(**overrides))
+    config = task_class(name).config_class(**overrides)
+    config.validate()
+    return config
 
 
 def check_setting_names(name: str, settings: Iterable[str]) -> None:

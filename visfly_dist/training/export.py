@@ -371,6 +371,17 @@ def task_metadata(task: str, env_settings: dict[str, Any]) -> tuple[dict[str, An
             "action_delay_s": float(cfg.action_delay_s), "action_mapping": mapping}, tuple(cfg.cameras)
 
 
+def check_exportable(checkpoint: Path) -> None:
+    """Raise ConfigError unless ``checkpoint`` is an existing PPO ``.zip`` (the kind export reads):
+    checked before anything else about it, so a BPTT/SHAC ``.npz`` is told so, not sent after its
+    normalisation statistics."""
+    if checkpoint.suffix == ".npz":
+        raise ConfigError(f"--checkpoint {str(checkpoint)!r} is a BPTT/SHAC actor (.npz): export takes PPO checkpoints "
+                          "(.zip) only so far; evaluate it with 'visfly-dist eval' (docs/DEPLOY.md)")
+    if not checkpoint.is_file() or checkpoint.suffix != ".zip":
+        raise ConfigError(f"--checkpoint {str(checkpoint)!r} must be an existing PPO .zip written by 'visfly-dist train'")
+
+
 def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_settings: dict[str, Any] | None = None,
                       opset: int = OPSET) -> ExportInfo:
     """Export a ``visfly-dist train`` checkpoint (``.zip``, with its ``*.norm.npz`` when there is one);
@@ -387,8 +398,7 @@ def export_checkpoint(task: str, checkpoint: str | Path, out: str | Path, env_se
     from visfly_dist.training.run import env_kwargs
 
     checkpoint = Path(checkpoint)
-    if not checkpoint.is_file() or checkpoint.suffix != ".zip":
-        raise ConfigError(f"--checkpoint {str(checkpoint)!r} must be an existing PPO .zip written by 'visfly-dist train'")
+    check_exportable(checkpoint)
     run_cfg = find_run_config(checkpoint)
     if run_cfg is not None and run_cfg.task != task:
         raise ConfigError(f"{str(checkpoint)!r} was trained on task {run_cfg.task!r} (its config.json), not {task!r}")

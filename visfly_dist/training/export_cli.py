@@ -40,10 +40,11 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.tasks.registry import check_setting_names
     from visfly_dist.training.config import TrainConfig
     from visfly_dist.training.evaluation import find_run_config, missing_normalization
-    from visfly_dist.training.export import describe, export_checkpoint
+    from visfly_dist.training.export import check_exportable, describe, export_checkpoint
     from visfly_dist.training.ppo import env_kwargs
 
     settings = None
+    check_exportable(Path(args.checkpoint))
     run_cfg = find_run_config(Path(args.checkpoint))
     warning = missing_normalization(Path(args.checkpoint), run_cfg)  # raises where the run normalised
     if warning is not None:

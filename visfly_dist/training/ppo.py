@@ -45,6 +45,7 @@ from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.errors import ConfigError
 from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
+from visfly_dist.tasks.registry import task_config
 from visfly_dist.training import stop
 from visfly_dist.training.callbacks import StopWhenAsked, SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, Checkpoints, save_checkpoint, save_on_crash
@@ -144,6 +145,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     assert cfg.out is not None and cfg.timesteps is not None  # resolved() and validate() set them
     run_dir, timesteps = Path(cfg.out), cfg.timesteps
     tensor = cfg.algo == "ppo"
+    task_config(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg))  # a bad task setting fails before anything is said to start
     if cfg.progress:
         print(f"starting the env: {cfg.num_envs} agents, their scenes loaded by {cfg.workers} local worker(s)"
               if cfg.workers else f"starting the env: {cfg.num_envs} agents, scenes loaded by remote workers", flush=True)
