@@ -149,3 +149,12 @@ def test_an_outage_longer_than_the_limit_names_the_router():
                     agg.observe(poses)
     finally:
         stop_process(router)
+
+
+def test_launch_refuses_a_lease_its_workers_would_refuse(capsys):
+    """Checked before any worker starts: each would exit on it and be restarted for ever."""
+    from visfly_dist.cli import main
+
+    assert main(["launch", "--workers", "1", "--run-id", "r", "--connect", "tcp/127.0.0.1:7447", "--lease-ms", "50"]) == 2
+    captured = capsys.readouterr()
+    assert "--lease-ms: lease_ms=50 must be in [200, 600000]" in captured.err and "ready" not in captured.out

@@ -232,3 +232,23 @@ def test_loads_of_one_file_that_arrive_together_build_it_once(make_worker, scene
     scenes = [worker._scenes.get(k) for k in ("k0", "k1", "k3")]
     assert all(s.renderer is scenes[0].renderer and s.queries is scenes[0].queries for s in scenes)
     assert worker._scenes.keys() == ["k0", "k1", "k3"] and not worker._scenes.loading_keys()
+
+
+def test_loads_of_a_missing_file_that_arrive_together_are_each_answered_with_its_error(make_worker):
+    """A burst of loads of one scene whose build fails: every load is answered with the error and
+    none stays loading (the waiters used to wait on one another for ever)."""
+    import time
+
+    worker = make_worker()
+    answers: dict[str, tuple[bool, dict]] = {}
+    keys = ("m0", "m1", "m2", "m3")
+    for key in keys:
+        worker.submit(encode(_load(key, "no_such_dir/missing.ply")),
+                      lambda ok, body, key=key: answers.__setitem__(key, (ok, decode(body))))
+    deadline = time.monotonic() + 30
+    while len(answers) < len(keys) and time.monotonic() < deadline:
+        worker._serve_one(0.05)
+    assert sorted(answers) == list(keys), f"unanswered: {sorted(set(keys) - set(answers))}"
+    assert all(not ok and reply["code"] == "scene_error" and "missing.ply" in reply["message"]
+               for ok, reply in answers.values())
+    assert not worker._scenes.loading_keys() and not worker._scenes.keys()

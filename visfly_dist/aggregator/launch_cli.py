@@ -23,7 +23,7 @@ from visfly_dist.aggregator.launcher import LocalWorker, WorkerLaunchSpec, stop_
 from visfly_dist.errors import ConfigError
 from visfly_dist.host import usable_cores
 from visfly_dist.protocol.keys import check_chunk
-from visfly_dist.protocol.session import add_zenoh_config_argument, load_config_file, resolve_config_file
+from visfly_dist.protocol.session import add_zenoh_config_argument, lease_problem, load_config_file, resolve_config_file
 
 log = logging.getLogger("visfly_dist.launch")
 
@@ -61,6 +61,9 @@ def _check(args: argparse.Namespace) -> None:
         problems.append(f"--threads {args.threads} must be >= 1")
     if args.workers < 1:
         problems.append(f"--workers {args.workers} must be >= 1")
+    lease = lease_problem(args.lease_ms)
+    if lease:  # the workers would refuse it and be restarted for ever
+        problems.append(f"--lease-ms: {lease}")
     problems += [f"--scene-root {r!r} is not a directory" for r in args.scene_root if not os.path.isdir(r)]
     for value, what in ((args.run_id, "--run-id"), (args.worker_prefix or "x", "--worker-prefix")):
         try:

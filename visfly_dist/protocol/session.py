@@ -78,6 +78,16 @@ def load_config_file(path: str):
     return cfg
 
 
+LEASE_MS_RANGE = (200, 600_000)
+"""Bounds of a link lease, ms: below, a busy link is taken for dead; above, a dead one is noticed too late."""
+
+
+def lease_problem(lease_ms: int) -> str | None:
+    """What is wrong with a link lease of ``lease_ms``, or ``None``."""
+    low, high = LEASE_MS_RANGE
+    return None if low <= int(lease_ms) <= high else f"lease_ms={lease_ms} must be in [{low}, {high}]"
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """How a process joins the Zenoh network.
@@ -108,8 +118,9 @@ class SessionConfig:
         for ep in (*self.connect, *self.listen):
             if not isinstance(ep, str) or "/" not in ep:
                 raise ConfigError(f"endpoint {ep!r} must look like 'tcp/HOST:PORT'")
-        if not 200 <= int(self.lease_ms) <= 600_000:
-            raise ConfigError(f"lease_ms={self.lease_ms} must be in [200, 600000]")
+        problem = lease_problem(self.lease_ms)
+        if problem:
+            raise ConfigError(problem)
         object.__setattr__(self, "config_file", resolve_config_file(self.config_file))
         if self.config_file is not None:
             load_config_file(self.config_file)  # fail now, naming the file, not at open

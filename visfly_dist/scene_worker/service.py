@@ -406,9 +406,10 @@ class SceneWorker:
         self._loader.add(job)
         self._start_loads()
 
-    def _building(self, request: LoadScene) -> bool:
-        """Whether a load in progress (not one waiting for a twin) builds the scene ``request`` asks for."""
-        return any(same_scene(job.request, request) for job in self._loader_jobs())
+    def _building(self, request: LoadScene, besides: LoadJob | None = None) -> bool:
+        """Whether a load in progress (not one waiting for a twin, nor ``besides``) builds the scene
+        ``request`` asks for."""
+        return any(same_scene(job.request, request) for job in self._loader_jobs() if job is not besides)
 
     def _loader_jobs(self) -> list[LoadJob]:
         """The loads in progress that build their scene (those waiting for a twin do not)."""
@@ -423,9 +424,12 @@ class SceneWorker:
         respond(True, _loaded_reply(loaded))
 
     def _take_twins(self) -> None:
-        """Serve the loads that waited for a twin being built: shared if it was built, else built now."""
-        waiting, self._waiting_for_twin = self._waiting_for_twin, []
-        for job in waiting:
+        """Serve the loads that waited for a twin being built: shared if it was built, else built now.
+
+        Each is taken off the waiting list in turn, the others staying on it: a job still waiting is
+        no builder, so after a failed build the first waiter builds and the rest wait for it."""
+        for job in list(self._waiting_for_twin):
+            self._waiting_for_twin = [w for w in self._waiting_for_twin if w is not job]
             key = job.request.scene_key
             if not self._scenes.owns_load(key, job):  # unloaded while it waited (already answered)
                 continue
@@ -433,7 +437,7 @@ class SceneWorker:
             if twin is not None:
                 self._scenes.end_load(key, job)
                 self._share(twin, key, job.respond, job.start)
-            elif self._building(job.request):
+            elif self._building(job.request, besides=job):
                 self._waiting_for_twin.append(job)
             else:  # its twin failed or was unloaded: built on its own (and answered on its own)
                 self._loader.add(job)
