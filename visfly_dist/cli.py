@@ -24,7 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "launch": ("visfly_dist.aggregator.launch_cli", "keep a local pool of scene workers alive"),
     "scenes": ("visfly_dist.scene_worker.scenes_cli", "generate and preview scenes"),
     "plot": ("visfly_dist.dynamics.plot_cli", "plot controller step responses"),
-    "bench": ("visfly_dist.bench.cli", "benchmarks: physics, render, step, all"),
+    "bench": ("visfly_dist.bench.cli", "benchmarks: physics, render, step, update, train, all"),
 }
 
 

@@ -31,7 +31,7 @@ def test_bad_endpoint_names_it(endpoint):
 
 
 def test_remote_only_pool_needs_an_endpoint():
-    with pytest.raises(ConfigError, match="num_local_workers=0 needs connect or listen"):
+    with pytest.raises(ConfigError, match=r"num_local_workers=0 \(--workers 0\) needs endpoints where remote workers can join: --connect"):
         PoolConfig(num_local_workers=0).validate()
     PoolConfig(num_local_workers=0, connect=("tcp/10.0.0.5:7447",)).validate()
 

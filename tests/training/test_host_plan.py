@@ -86,6 +86,7 @@ def test_memory_caps_the_agents_and_teams_stay_whole() -> None:
 def test_remote_workers_only_need_no_local_worker_and_overlap() -> None:
     plan = navigation(LAPTOP, remote_only=True)
     assert plan.workers == 0 and plan.overlap
+    assert "no local worker" in plan.reasons["worker_threads"]  # not "shared by 1 worker(s)"
 
 
 def test_cuda_without_a_usable_gpu_fails_naming_torchs_build() -> None:

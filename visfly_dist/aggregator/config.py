@@ -124,7 +124,8 @@ class PoolConfig:
         if not isinstance(self.num_local_workers, int) or self.num_local_workers < 0:
             out.append(f"num_local_workers={self.num_local_workers!r} must be an int >= 0")
         elif self.num_local_workers == 0 and not self.connect and not self.listen:
-            out.append("num_local_workers=0 needs connect or listen endpoints where remote workers can join")
+            out.append("num_local_workers=0 (--workers 0) needs endpoints where remote workers can join: --connect "
+                       "ENDPOINT (a router or a worker that listens), or listen endpoints (PoolConfig.listen)")
         if self.backend not in BACKENDS:
             out.append(f"backend={self.backend!r} must be one of {BACKENDS}")
         for name in ("step_timeout_s", "startup_timeout_s", "outage_limit_s"):

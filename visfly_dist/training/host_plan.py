@@ -160,7 +160,8 @@ def plan_host(facts: HostFacts, device: str, base_envs: int, base_batch: int, ba
     learner_cores = 0 if cores <= 2 else (1 if cores < 8 else 2)
     if worker_threads is None:
         worker_threads = max(1, (cores - learner_cores) // max(workers, 1))
-        reasons["worker_threads"] = (f"{cores} cores - {learner_cores} for the learner, shared by {max(workers, 1)} worker(s)")
+        reasons["worker_threads"] = (f"{cores} cores - {learner_cores} for the learner, shared by {workers} worker(s)" if workers
+                                     else "no local worker: unused here (remote workers size their own threads)")
     else:
         reasons["worker_threads"] = "given"
     if num_envs is None:
