@@ -19,6 +19,7 @@ class ErrorCode(StrEnum):
     UNKNOWN_SCENE = "unknown_scene"    # the scene key is not loaded here (e.g. the worker restarted)
     SCENE_LOADING = "scene_loading"    # the scene key is still loading: retry after its load reply
     SCENE_ERROR = "scene_error"        # the scene cannot be loaded/generated/sampled as asked
+    SCENE_MISSING = "scene_missing"    # the scene file is not under this worker's scene roots: another may have it
     OVERLOADED = "overloaded"          # the worker is full (scenes per worker): use another worker
     SHUTTING_DOWN = "shutting_down"    # the worker is stopping: use another worker
     INTERNAL = "internal"              # a bug on the worker (logged there with its traceback)

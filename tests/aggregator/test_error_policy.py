@@ -149,3 +149,66 @@ def test_a_step_over_a_workers_pixel_bound_fails_at_the_first_observation(scene_
             with pytest.raises(RemoteError, match=r"step asks for 1536 pixels .* over this worker's bound of 1000") as err:
                 agg.observe(np.tile(np.array([[2.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]], np.float32), (2, 1)))
             assert err.value.code == "too_large"
+
+
+def test_a_file_one_worker_lacks_is_placed_on_the_worker_that_has_it(tmp_path, caplog):
+    """``scene_missing`` is one worker's: the source stays in the dataset and goes to the workers that
+    have its file (the run used to drop it everywhere, and failed when that was every source)."""
+    full, partial = tmp_path / "full", tmp_path / "partial"
+    full.mkdir(), partial.mkdir()
+    both, only_full = _garage_file(full / "both.ply", False), _garage_file(full / "only_full.ply", False)
+    _garage_file(partial / "both.ply", False)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    workers = []
+    try:
+        assert "router ready" in _read_line(router, 30.0)
+        workers = [start_worker("lacks", endpoint, full, connect=True, worker_id="wa"),
+                   start_worker("lacks", endpoint, partial, connect=True, worker_id="wb")]
+        with caplog.at_level("WARNING", logger="visfly_dist.aggregator.scene_moves"):
+            with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "lacks", "min_workers": 2,
+                                       "scene_roots": (str(full),)},  # the trainer sees every file
+                                 scenes={"sources": (both, only_full), "num_scenes": 4, "agents_per_scene": 1,
+                                         "shuffle": False}) as agg:
+                assert not agg.dataset.dropped
+                sources = {i: agg.slot_source(i) for i in range(agg.num_scenes)}
+                assert sorted(sources.values()) == [both, both, only_full, only_full]
+                poses, end = spawn_poses(agg), time.monotonic() + 30.0
+                while "wb" not in agg.assignment().values() and time.monotonic() < end:
+                    assert not agg.observe(poses).lost.any()  # the rebalance gives wb what it has
+                assignment = agg.assignment()
+                assert sorted(assignment.values()) == ["wa", "wa", "wb", "wb"]
+                assert all(assignment[i] == "wa" for i, source in sources.items() if source == only_full)
+        assert "worker wb has no 'only_full.ply' under its scene roots" in caplog.text
+    finally:
+        for proc in workers:
+            stop_process(proc)
+        stop_process(router)
+
+
+def test_a_file_no_worker_has_is_dropped_naming_every_worker(tmp_path):
+    root_a, root_b, trainer = tmp_path / "a", tmp_path / "b", tmp_path / "trainer"
+    for root in (root_a, root_b, trainer):
+        root.mkdir()
+        good = _garage_file(root / "good.ply", False)
+    _garage_file(trainer / "nowhere.ply", False)  # the trainer has it, no worker does
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    workers = []
+    try:
+        assert "router ready" in _read_line(router, 30.0)
+        workers = [start_worker("none", endpoint, root_a, connect=True, worker_id="wa"),
+                   start_worker("none", endpoint, root_b, connect=True, worker_id="wb")]
+        with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "none", "min_workers": 2,
+                                   "scene_roots": (str(trainer),)},
+                             scenes={"sources": (good, "nowhere.ply"), "num_scenes": 2, "agents_per_scene": 1,
+                                     "shuffle": False}) as agg:
+            assert list(agg.dataset.dropped) == ["nowhere.ply"]
+            assert "no live worker has it: ['wa', 'wb']" in agg.dataset.dropped["nowhere.ply"]
+            assert all(agg.slot_source(i) == good for i in range(agg.num_scenes))
+    finally:
+        for proc in workers:
+            stop_process(proc)
+        stop_process(router)

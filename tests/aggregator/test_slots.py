@@ -210,3 +210,21 @@ def test_a_start_up_plan_is_logged_as_one_short_line_per_worker_and_reason():
     summary = _plan_summary(plan)
     assert summary == ("128 slots (0, 2, 4, 6, 8, 10, 12, 14, ...) on local-0 (place); "
                        "128 slots (1, 3, 5, 7, 9, 11, 13, 15, ...) on local-1 (place); slot 7 on local-1 (swap)")
+
+
+def test_a_source_a_worker_lacks_is_placed_and_rebalanced_onto_the_others_only():
+    pool = FakePool("a", "b")
+    table = SlotTable(["common", "rare", "common", "rare"], agents_per_scene=1)
+    lacking = {"rare": {"b"}}
+    plan = table.plan_placement(pool.live, pool.generations, lacking)
+    assert [(s, m.worker) for s, m in plan] == [(0, "a"), (1, "a"), (2, "b"), (3, "a")]
+    _carry_out(table, plan)
+    # a holds 3, b 1: the rebalance may give b a "common" slot, never a "rare" one
+    moves = table.plan_rebalance(pool.live, pool.generations, lacking)
+    assert [(table.slots[s].source, m.worker) for s, m in moves] == [("common", "b")]
+    _carry_out(table, moves)
+    assert all(s.worker == "a" for s in table.slots if s.source == "rare")
+    assert _counts(table, pool.live) == {"a": 2, "b": 2}
+    # were every live worker to lack it, it is asked anyway (its failure drops the source)
+    every = SlotTable(["rare"], agents_per_scene=1)
+    assert [m.worker for _, m in every.plan_placement(pool.live, pool.generations, {"rare": {"a", "b"}})] == ["a"]

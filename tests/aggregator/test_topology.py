@@ -158,3 +158,47 @@ def test_launch_refuses_a_lease_its_workers_would_refuse(capsys):
     assert main(["launch", "--workers", "1", "--run-id", "r", "--connect", "tcp/127.0.0.1:7447", "--lease-ms", "50"]) == 2
     captured = capsys.readouterr()
     assert "--lease-ms: lease_ms=50 must be in [200, 600000]" in captured.err and "ready" not in captured.out
+
+
+def test_closing_unloads_the_run_s_scenes_from_remote_workers(router, scene_root):
+    """A worker started by hand outlives the run: it is asked to drop the run's scenes at close,
+    instead of holding them until the next run with the run id finds them."""
+    from tests.helpers import call, client_session
+    from visfly_dist.protocol.messages import Health
+
+    remote = start_worker("run-unload", router, scene_root, connect=True, worker_id="remote-u")
+    agg = make_aggregator(pool={"connect": (router,), "num_local_workers": 0, "run_id": "run-unload"}, scenes=SCENES)
+    try:
+        agg.start()
+        held = {h["worker_id"]: h["scenes"] for h in agg.health()}
+        assert len(held["remote-u"]) == 2  # both slots
+        agg.close()
+        with client_session(router) as session:
+            ok, health = call(session, remote.rpc_key, Health().to_message())
+        assert ok and health["scenes"] == [] and health["loading"] == []
+    finally:
+        agg.close()
+        stop_process(remote)
+
+
+def test_a_second_trainer_on_a_run_id_in_use_is_refused_until_the_first_closes(router, scene_root):
+    """Two trainers on one run id would load their scenes under the same keys on the same workers."""
+    from visfly_dist.errors import ConfigError
+
+    pool = {"connect": (router,), "num_local_workers": 1, "run_id": "run-twice"}
+    first = make_aggregator(pool=pool, scenes=SCENES)
+    second = make_aggregator(pool=pool, scenes=SCENES)
+    third = make_aggregator(pool=pool, scenes=SCENES)
+    try:
+        first.start()
+        with pytest.raises(ConfigError, match="run id 'run-twice' is in use by another trainer"):
+            second.start()
+        assert first.workers == ["local-0"]  # the refused one started no worker of its own
+        poses = spawn_poses(first)
+        np.testing.assert_allclose(first.observe(poses).images["depth"], reference(first, poses)["depth"], atol=1e-4)
+        first.close()
+        third.start()  # the token went with the first trainer
+        assert third.workers == ["local-0"]
+    finally:
+        for agg in (first, second, third):
+            agg.close()

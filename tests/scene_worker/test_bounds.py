@@ -249,6 +249,6 @@ def test_loads_of_a_missing_file_that_arrive_together_are_each_answered_with_its
     while len(answers) < len(keys) and time.monotonic() < deadline:
         worker._serve_one(0.05)
     assert sorted(answers) == list(keys), f"unanswered: {sorted(set(keys) - set(answers))}"
-    assert all(not ok and reply["code"] == "scene_error" and "missing.ply" in reply["message"]
+    assert all(not ok and reply["code"] == "scene_missing" and "missing.ply" in reply["message"]
                for ok, reply in answers.values())
     assert not worker._scenes.loading_keys() and not worker._scenes.keys()

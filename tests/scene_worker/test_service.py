@@ -232,6 +232,7 @@ MALFORMED = {
 }
 UNKNOWN_SCENE_CASES = {"unknown scene in step", "unknown scene in spawn", "unload unknown"}
 CODES = {name: "unknown_scene" if name in UNKNOWN_SCENE_CASES
+         else "scene_missing" if name == "missing file"  # this worker's roots lack it: another worker may have it
          else {"ProtocolError": "bad_request", "SceneError": "scene_error"}[error_type]
          for name, (_, error_type, _) in MALFORMED.items()}
 

@@ -58,10 +58,13 @@ from visfly_dist.aggregator.spawn_pools import AgentStreams, PoolKey, SpawnJob, 
 from visfly_dist.aggregator.step_plan import StepPlans, WorkerEntries, plan_entries
 from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
 from visfly_dist.protocol.cameras import CameraSpec
-from visfly_dist.protocol.messages import Health, step_message
+from visfly_dist.protocol.messages import Health, UnloadScene, step_message
 
 log = logging.getLogger(__name__)
 
+CLOSE_UNLOAD_TIMEOUT_S = 2.0
+"""How long closing waits for remote workers to unload the run's scenes (an unreachable one is left
+to the next run with the run id)."""
 _NO_AGENTS = np.zeros(0, np.int64)
 _NO_POSES = np.zeros((0, 7))
 _NO_ENTRIES = WorkerEntries()
@@ -192,9 +195,27 @@ class Aggregator:
         if self._closed:
             return
         self._closed = True
-        self._pool.close()
-        if self._images is not None:
-            self._images.close()
+        try:
+            if self._started:
+                self._unload_from_remote_workers()
+        finally:
+            self._pool.close()
+            if self._images is not None:
+                self._images.close()
+
+    def _unload_from_remote_workers(self) -> None:
+        """Ask the workers this run did not start to drop its scenes (local ones stop with the pool):
+        a worker started by hand outlives the run, and would hold them (memory, ``--max-scenes``)
+        until the next run with this run id found them. Bounded by :data:`CLOSE_UNLOAD_TIMEOUT_S`."""
+        remote = set(self._pool.remote_live_workers())
+        targets = [(w, k) for w, k in self._moves.held() if w in remote]
+        if not targets:
+            return
+        replies = self._pool.call([(w, UnloadScene(k).to_message()) for w, k in targets], CLOSE_UNLOAD_TIMEOUT_S)
+        left = sorted({r.worker_id for r in replies if r.failure is not None})
+        if left:
+            log.warning("run %s: could not unload the run's scenes from worker(s) %s at close (%s); the next run "
+                        "with this run id unloads them", self.run_id, left, next(r.failure for r in replies if r.failure))
 
     def __enter__(self) -> "Aggregator":
         return self.start()
@@ -575,11 +596,11 @@ class Aggregator:
             live = self._wait_out_outage()
             gens = self._pool.generations(live)
         placeable = self._moves.placeable(live)
-        plan = self.table.plan_placement(placeable, gens)
+        plan = self.table.plan_placement(placeable, gens, self._moves.lacking)
         if not plan and not self.table.orphans():
             # also while loads run (navigation's swaps keep some running): a move in flight counts on
             # its target and its slot is not moved again, so a rejoining worker gets its share now
-            plan = self.table.plan_rebalance(placeable, gens)
+            plan = self.table.plan_rebalance(placeable, gens, self._moves.lacking)
         self._background.extend(self._moves.send_loads(plan))
         busy = plan or self._background or self._moves.switching or len(placeable) < len(live)
         self._settled = None if busy else (self.table.revision, tuple(gens.items()))
@@ -618,7 +639,7 @@ class Aggregator:
                 time.sleep(max(0.0, until - time.monotonic()))
                 continue
             gens = self._pool.generations(live)
-            self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens)))
+            self._background.extend(self._moves.send_loads(self.table.plan_placement(placeable, gens, self._moves.lacking)))
             jobs = [j for j in self._background if isinstance(j, LoadJob)]
             self._pool.gather([j.pending for j in jobs])
             self._apply_background()
@@ -654,6 +675,9 @@ class Aggregator:
             self.table.fail_move(job.slot, move)
             if reply.error is not None and reply.error.code == ErrorCode.SCENE_ERROR:
                 self._moves.drop_source(job.slot, move, reply.error)
+                return
+            if reply.error is not None and reply.error.code == ErrorCode.SCENE_MISSING:
+                self._moves.lacks(job.slot, move, reply.error, self._pool.live_workers())
                 return
             if reply.error is not None and reply.error.code == ErrorCode.OVERLOADED:
                 self._moves.back_off(move.worker, f"is full ({reply.error.message})")

@@ -64,6 +64,8 @@ log = logging.getLogger(__name__)
 STOP_GRACE_S = 5.0
 POLL_S = 0.02
 LIVELINESS_QUEUE = 4096
+TRAINER_CHECK_S = 1.0
+"""How long the liveliness get for another trainer of the run may take at start."""
 EXIT_WAIT_S = 0.5
 """How long a dropped local worker's process is waited for, to tell how it ended (once per drop)."""
 PROBE_TIMEOUT_S = 1.0  # a health reply takes milliseconds; a hung worker costs this much more before it is replaced
@@ -191,6 +193,7 @@ class WorkerPool:
         self._spawned = 0
         self._session: zenoh.Session | None = None
         self._subscriber: zenoh.Subscriber | None = None
+        self._token: zenoh.LivelinessToken | None = None  # this run's trainer token (one trainer per run id)
         self._log_dir: str | None = None
         self._launch: WorkerLaunchSpec | None = None
         self._replies = threading.Condition()
@@ -221,6 +224,8 @@ class WorkerPool:
         self._user = session_cfg.user()
         self._session = session = open_session(session_cfg)
         try:
+            self._refuse_second_trainer(session)
+            self._token = session.liveliness().declare_token(keys.trainer_alive(self.run_id))
             self._subscriber = session.liveliness().declare_subscriber(
                 keys.workers_alive_pattern(self.run_id), zenoh.handlers.FifoChannel(LIVELINESS_QUEUE), history=True)
             if self.config.num_local_workers:
@@ -236,6 +241,26 @@ class WorkerPool:
             self.close()
             raise
 
+    def _refuse_second_trainer(self, session: zenoh.Session) -> None:
+        """ConfigError if another trainer holds this run's token, reachable now: two trainers on one
+        run id would load their scenes under the same keys on the same workers, each rendering in
+        the other's scenes without a word.
+
+        A token still seen is looked at again for one lease (a trainer just killed loses its token
+        within it). Two trainers starting at the same instant can both pass; the check is for the
+        common mistake. Under a router's access control that does not grant the trainer token
+        (``deploy/zenoh/router-acl.json5``: rule ``trainer-token``), nothing is seen: no check.
+        """
+        key = keys.trainer_alive(self.run_id)
+        deadline = time.monotonic() + self.config.lease_ms / 1000.0 + 0.5
+        while any(r.ok is not None for r in session.liveliness().get(key, timeout=TRAINER_CHECK_S)):
+            if time.monotonic() >= deadline:
+                raise ConfigError(
+                    f"run id {self.run_id!r} is in use by another trainer (its liveliness token {key} exists): two "
+                    "trainers on one run id would render in each other's scenes. Give this run its own --run-id "
+                    "(and start its workers with it), or stop the other run first")
+            time.sleep(0.2)
+
     def close(self) -> None:
         """Stop local workers, undeclare, close the session. Idempotent.
 
@@ -250,6 +275,9 @@ class WorkerPool:
         if self._subscriber is not None:
             self._subscriber.undeclare()
             self._subscriber = None
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
         if self._session is not None:
             self._session.close()
             self._session = None
@@ -287,6 +315,10 @@ class WorkerPool:
         """Ids of the workers that are alive and not banned, sorted."""
         self._poll_liveliness()
         return sorted(self._alive - self._banned)
+
+    def remote_live_workers(self) -> list[str]:
+        """:meth:`live_workers` that this pool did not start (they outlive it), sorted."""
+        return [w for w in self.live_workers() if w not in self._local]
 
     def recheck_banned(self) -> list[str]:
         """Probe banned workers whose token stays (never blocks); take back those that answered.

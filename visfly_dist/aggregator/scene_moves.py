@@ -132,6 +132,7 @@ class SceneMoves:
         self._reconciled: dict[str, int] = {}  # worker -> the generation whose held scenes were checked
         self._full: dict[str, tuple[float, float]] = {}  # worker -> (no new scene before, backoff) after overloaded
         self._full_why: dict[str, str] = {}  # worker -> why it backs off (the last time it did)
+        self.lacking: dict[str, set[str]] = {}  # source -> workers without its file under their scene roots
         self._switches: dict[int, PendingSwitch] = {}  # slot -> its loaded swap, waiting for spawn pools
         self._switched = np.zeros(len(table.agent_scene), dtype=bool)  # scene changed under a running episode
         self._next_scene = np.zeros(len(table.agent_scene), dtype=bool)  # next episode starts in an armed swap
@@ -179,6 +180,8 @@ class SceneMoves:
                                            and self._full.get(worker, (0.0, 0.0))[0] <= now)
             if self._table.note_resets(slot, int(resets[slot]), every, may_start):
                 source = self._dataset.next_source()
+                if worker in self.lacking.get(source, ()):  # its file is not there: the slot swaps later
+                    continue
                 move = self._table.plan_swap(slot, source, generations)
                 if move is None:
                     self._table.set_source(slot, source)
@@ -293,6 +296,18 @@ class SceneMoves:
         if len(left):
             log.warning("run %s: %s left worker %s (%s)", self._run_id, _slot_list(left), worker, reason)
 
+    def held(self) -> list[tuple[str, str]]:
+        """Every ``(worker, key)`` a worker may hold for this run: served, being loaded or armed for
+        a slot, due to be unloaded, or stale."""
+        out = set()
+        for slot in self._table.slots:
+            moves = (slot.move, None if slot.incoming is None else slot.incoming.move)
+            out |= {(slot.worker, slot.key)} if slot.worker is not None else set()
+            out |= {(m.worker, m.key) for m in moves if m is not None}
+        out |= {(w, k) for _, w, k in self._unloads}
+        out |= {(w, k) for w, keys in self.stale.items() for k in keys}
+        return sorted(out)
+
     def take_stale(self, live: Sequence[str]) -> list[tuple[str, str]]:
         """A worker that dropped off the network and rejoined still holds scenes it no longer serves:
         the ``(worker, key)`` to unload (a restarted one answers ``unknown_scene``, which is fine)."""
@@ -324,8 +339,9 @@ class SceneMoves:
         unknown = sorted((set(reply.message.get("scenes", [])) | set(reply.message.get("loading", []))) - known)
         if not unknown:
             return []
-        log.warning("run %s: worker %s holds scenes %s that the run does not serve (their load replies "
-                    "were lost); unloading them", self._run_id, worker, unknown)
+        log.warning("run %s: worker %s holds scenes %s that the run does not serve (left by an earlier run "
+                    "with this run id that could not unload them, or their load replies were lost); unloading them",
+                    self._run_id, worker, unknown)
         return [(worker, k) for k in unknown]
 
     # ----- workers that are full, sources that cannot load -----------------------------------
@@ -352,11 +368,24 @@ class SceneMoves:
         """Why each of ``live`` backs off, for an error: ``local-0 is full (...); local-1 ...``."""
         return "; ".join(f"{w} {self._full_why.get(w, 'backs off')}" for w in live)
 
-    def drop_source(self, slot: int, move: Move, error: RemoteError) -> None:
+    def lacks(self, slot: int, move: Move, error: RemoteError, live: Sequence[str]) -> None:
+        """``move.worker`` has no file for ``move.source`` under its scene roots (``scene_missing``):
+        the source is placed on the workers that have it from now on; it leaves the dataset, as a
+        source that cannot load does, only when no live worker has it."""
+        lacking = self.lacking.setdefault(move.source, set())
+        lacking.add(move.worker)
+        if set(live) <= lacking:
+            self.drop_source(slot, move, error, f"no live worker has it: {sorted(lacking)}")
+            return
+        log.warning("run %s: worker %s has no %r under its scene roots (%s); that source goes to the other workers "
+                    "only. Give every worker of a run the same scene files", self._run_id, move.worker, move.source,
+                    error.message)
+
+    def drop_source(self, slot: int, move: Move, error: RemoteError, where: str = "") -> None:
         """A source that cannot load, or whose spawn region has no free position (``scene_error``),
         leaves the dataset; an orphan slot that waited for it takes the next source. The run fails
         only when no source is left."""
-        why = f"{error.message} (worker {move.worker})"
+        why = f"{error.message} ({where or f'worker {move.worker}'})"
         log.warning("run %s: scene source %r cannot be used (it does not load, or has no room to start in) "
                     "and is dropped from the dataset: %s", self._run_id, move.source, why)
         if not self._dataset.drop(move.source, why):

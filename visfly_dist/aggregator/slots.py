@@ -27,7 +27,7 @@ Invariants:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -120,21 +120,28 @@ class SlotTable:
             self.revision += 1
         return lost
 
-    def plan_placement(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
-        """Moves that would put every orphan without a move in flight on the least-loaded live workers."""
+    def plan_placement(self, live: Sequence[str], generations: dict[str, int],
+                       lacking: Mapping[str, set[str]] | None = None) -> list[tuple[int, Move]]:
+        """Moves that would put every orphan without a move in flight on the least-loaded live workers
+        that have its source (``lacking``: source -> workers without its file; were every live worker
+        among them, the load is asked anyway, and its failure drops the source)."""
         if not live:
             return []
         loads = self.loads(live)
         plan = []
         for s in self.slots:
             if s.worker is None and s.move is None:
-                target = min(live, key=lambda w: (loads[w], w))
+                able = [w for w in live if lacking is None or w not in lacking.get(s.source, ())] or live
+                target = min(able, key=lambda w: (loads[w], w))
                 loads[target] += 1
                 plan.append((s.index, self._move(s, target, s.source, "place", generations)))
         return plan
 
-    def plan_rebalance(self, live: Sequence[str], generations: dict[str, int]) -> list[tuple[int, Move]]:
-        """Moves from the busiest to the idlest worker while their loads would differ by more than one slot."""
+    def plan_rebalance(self, live: Sequence[str], generations: dict[str, int],
+                       lacking: Mapping[str, set[str]] | None = None) -> list[tuple[int, Move]]:
+        """Moves from the busiest to the idlest worker while their loads would differ by more than one
+        slot (never a slot whose source the idlest lacks: ``lacking`` as in :meth:`plan_placement`)."""
+        lacking = lacking or {}
         loads = self.loads(live)
         plan: list[tuple[int, Move]] = []
         moving = {s.index for s in self.slots if s.move is not None}
@@ -143,7 +150,8 @@ class SlotTable:
             idlest = min(loads, key=lambda w: (loads[w], w))
             if loads[busiest] - loads[idlest] <= 1:
                 break
-            candidates = [s for s in reversed(self.slots) if s.worker == busiest and s.index not in moving]
+            candidates = [s for s in reversed(self.slots) if s.worker == busiest and s.index not in moving
+                          and idlest not in lacking.get(s.source, ())]
             if not candidates:
                 break
             slot = candidates[0]

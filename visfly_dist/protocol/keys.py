@@ -39,6 +39,11 @@ def worker_alive(run_id: str, worker_id: str) -> str:
     return f"{ROOT}/{check_chunk(run_id, 'run_id')}/alive/worker/{check_chunk(worker_id, 'worker_id')}"
 
 
+def trainer_alive(run_id: str) -> str:
+    """The liveliness token the trainer of a run holds while its env is open (one trainer per run)."""
+    return f"{ROOT}/{check_chunk(run_id, 'run_id')}/alive/trainer"
+
+
 def workers_alive_pattern(run_id: str) -> str:
     """Pattern matching the liveliness tokens of every worker of one run."""
     return f"{ROOT}/{check_chunk(run_id, 'run_id')}/alive/worker/*"

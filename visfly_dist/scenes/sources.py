@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Iterable
 from urllib.parse import parse_qsl
 
-from visfly_dist.errors import SceneError
+from visfly_dist.errors import ErrorCode, SceneError
 from visfly_dist.scenes.generators import generate_scene, parse_value
 from visfly_dist.scenes.paths import PathLike, is_inside, normalize_roots
 from visfly_dist.scenes.scene import Scene
@@ -84,7 +84,8 @@ def resolve_source(source: str, roots: Iterable[PathLike]) -> Scene:
     for candidate in inside:
         if candidate.exists():
             return load_scene(candidate, up_axis=options.get("up"), roots=resolved_roots)
-    raise SceneError(f"scene path {source!r} not found under the scene roots {[str(r) for r in resolved_roots]}")
+    raise SceneError(f"scene path {source!r} not found under the scene roots {[str(r) for r in resolved_roots]}",
+                     code=ErrorCode.SCENE_MISSING)
 
 
 @lru_cache(maxsize=GENERATED_CACHE_SIZE)
