@@ -22,6 +22,8 @@ import torch
 
 from visfly_dist.dynamics import DynamicsConfig, Quadrotor
 from visfly_dist.errors import ConfigError
+from visfly_dist.output_paths import check_output_file
+from visfly_dist.training.host_plan import check_device
 
 MODES = ("eager", "compiled")
 BPTT_HORIZON = 10
@@ -89,7 +91,7 @@ def bench_physics(agents: Sequence[int], modes: Sequence[str] = MODES, grads: Se
         raise ConfigError(f"steps={steps} and agents={list(agents)} must be >= 1")
     rows = []
     previous = torch.get_num_threads()
-    torch.set_num_threads(threads or previous)
+    torch.set_num_threads(previous if threads is None else threads)
     try:
         for mode in modes:
             for grad in grads:
@@ -135,15 +137,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     agents = args.agents or ([100, 1000] if args.quick else [100, 1000, 10000])
-    steps = args.steps or (20 if args.quick else 100)
+    steps = (20 if args.quick else 100) if args.steps is None else args.steps
+    if args.threads < 1:
+        raise ConfigError(f"--threads {args.threads} must be >= 1")
+    if args.no_compile and "compiled" in args.modes and args.modes != list(MODES):
+        raise ConfigError(f"--modes {' '.join(args.modes)} asks for compiled rows, which --no-compile skips; drop one")
+    device = check_device(args.device)
+    if args.json:
+        check_output_file(args.json, "--json")
     modes = ["eager"] if args.no_compile else args.modes
     grads = (False,) if args.no_grad_rows else (False, True)
-    print(f"physics: CTBR, ctrl_dt {CTRL_DT}, sim_dt {SIM_DT}, RK4, motor lag; device {args.device}, "
+    print(f"physics: CTBR, ctrl_dt {CTRL_DT}, sim_dt {SIM_DT}, RK4, motor lag; device {device}, "
           f"{steps} steps, {args.threads} thread(s)")
     print(HEADER)
-    rows = bench_physics(agents, modes, grads, args.device, steps, verbose=True, threads=args.threads)
+    rows = bench_physics(agents, modes, grads, device, steps, verbose=True, threads=args.threads)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"benchmark": "physics", "rows": rows}, indent=2))
         print(f"wrote {args.json}")
     return 0

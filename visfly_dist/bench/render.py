@@ -39,6 +39,7 @@ import numpy as np
 
 from visfly_dist.bench.common import DRONE_RADIUS, bench_poses
 from visfly_dist.errors import ConfigError, RemoteError, TransportTimeoutError
+from visfly_dist.output_paths import check_output_file
 from visfly_dist.protocol.cameras import SENSOR_KINDS, CameraSpec
 
 WORKER_READY_S = 120.0
@@ -81,7 +82,7 @@ def bench_render(backends: Sequence[str] | None = None, res: Sequence[int] = (64
 
     backends = list(backends or available_backends())
     tracers = list(tracers or available_tracers())
-    _check(backends, res, kinds, cameras, reps, threads, tracers)
+    _check(backends, res, kinds, cameras, reps, threads, tracers, moving)
     world = generate_scene(scene, seed=seed)
     poses = bench_poses(world, cameras, seed)
     log(f"[bench render] {scene} seed {seed}: {world.num_triangles} triangles, {len(world.objects)} objects, "
@@ -216,9 +217,10 @@ def _time_in_process(configs: Sequence[tuple[str, str | None, int | None]], worl
 
 
 def _check(backends: Sequence[str], res: Sequence[int], kinds: Sequence[str], cameras: int, reps: int,
-           threads: Sequence[int] = (1,), tracers: Sequence[str] = ()) -> None:
+           threads: Sequence[int] = (1,), tracers: Sequence[str] = (), moving: int = 0) -> None:
     from visfly_dist.scene_worker.render_base import BACKENDS
     from visfly_dist.scene_worker.render_raycast import TRACERS
+    from visfly_dist.scenes.generators import MAX_MOVING
 
     problems = [f"backend {b!r} must be one of {(*BACKENDS, LEGACY_EGL)}" for b in backends
                 if b not in (*BACKENDS, LEGACY_EGL)]
@@ -230,6 +232,8 @@ def _check(backends: Sequence[str], res: Sequence[int], kinds: Sequence[str], ca
         problems.append("no raycast tracer is available (build the native tracer or install embreex)")
     if cameras < 1 or reps < 1:
         problems.append(f"agents={cameras} and reps={reps} must be >= 1")
+    if not 0 <= moving <= MAX_MOVING:  # the moving rows come last: checked before the others run
+        problems.append(f"moving={moving} must be in [0, {MAX_MOVING}]")
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -400,6 +404,8 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.bench.common import machine_info
 
     agents, reps = (min(args.agents, QUICK_AGENTS), 1) if args.quick else (args.agents, args.reps)
+    if args.json:
+        check_output_file(args.json, "--json")  # before the benchmark, not after it
     started = time.perf_counter()
     rows = bench_render(args.backend, args.res, args.kinds, agents, reps, args.scene, args.seed, args.worker,
                         args.search_radius, args.threads, args.tracers, log=lambda s: print(s, flush=True),

@@ -40,6 +40,7 @@ import numpy as np
 
 from visfly_dist.bench.common import STAGES
 from visfly_dist.errors import ConfigError
+from visfly_dist.output_paths import check_output_file
 
 ACTION_NOISE = 0.1
 """Std of the Gaussian noise added to the hover action: a policy near hover, with some resets."""
@@ -504,7 +505,16 @@ def run(args: argparse.Namespace) -> int:
     def log(line: str) -> None:
         print(line, flush=True)
 
-    steps = args.steps or (20 if args.quick else 100)
+    steps = (20 if args.quick else 100) if args.steps is None else args.steps
+    problems = [f"--{name} {value} must be >= 1" for name, value in (("steps", steps), ("scenes", args.scenes))
+                if value is not None and value < 1]
+    problems += [f"--workers {w} must be >= 1" for w in args.workers or () if w < 1]
+    if args.warmup < 0:
+        problems.append(f"--warmup {args.warmup} must be >= 0")
+    if problems:
+        raise ConfigError("; ".join(problems))
+    if args.json:
+        check_output_file(args.json, "--json")  # before the benchmark, not after it
     result: dict[str, Any] = {"machine": machine_info()}
     if args.rows:
         if args.workers is not None and len(args.workers) != 1:

@@ -444,7 +444,13 @@ def run(args: argparse.Namespace) -> int:
     from visfly_dist.bench import report
     from visfly_dist.bench.common import load_average, machine_info
 
-    timesteps = args.timesteps or (QUICK_TIMESTEPS if args.quick else DEFAULT_TIMESTEPS)
+    timesteps = (QUICK_TIMESTEPS if args.quick else DEFAULT_TIMESTEPS) if args.timesteps is None else args.timesteps
+    if timesteps < 1:
+        raise ConfigError(f"--timesteps {timesteps} must be >= 1")
+    if args.json:
+        from visfly_dist.output_paths import check_output_file
+
+        check_output_file(args.json, "--json")  # before the benchmark, not after it
     result: dict[str, Any] = {"machine": machine_info()}
     changes = {k: v for k, v in (("overlap", args.overlap), ("device", args.device), ("num_envs", args.num_envs))
                if v is not None}

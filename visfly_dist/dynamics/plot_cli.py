@@ -7,6 +7,7 @@ yaw), velocity and body rates over time, one colour per initial state, the comma
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import torch
@@ -15,6 +16,8 @@ from visfly_dist.dynamics.config import DynamicsConfig
 from visfly_dist.dynamics.quadrotor import Quadrotor
 from visfly_dist.dynamics.rotations import euler_from_quat
 from visfly_dist.dynamics.sampler import Distribution, InitialStateSampler
+from visfly_dist.errors import ConfigError
+from visfly_dist.output_paths import check_output_dir
 
 ORIGIN = (0.0, 0.0, 2.0)
 # Commands as actions: PS to (1, -1, 2.5) m with yaw 0.6 rad; LV at (1.5, -1, 0.5) m/s, yaw 0.6 rad.
@@ -99,10 +102,15 @@ def plot_step_response(controller: str, response: dict[str, torch.Tensor], path:
     plt.close(fig)
 
 
+MAX_DURATION_S = 600.0
+"""Longest step response plotted: 20,000 control steps, a few seconds of compute."""
+
+
 def run_step_response(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.duration) and 0 < args.duration <= MAX_DURATION_S):
+        raise ConfigError(f"--duration {args.duration} must be in (0, {MAX_DURATION_S:g}] seconds")
+    out = check_output_dir(args.out, "--out")
     torch.set_num_threads(1)            # tiny batches: a second thread only adds contention
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     for controller in ("ps", "lv"):
         response = simulate_step_response(controller, args.agents, args.seed, args.duration, args.airframe)
         path = out / f"{controller}_step_response.png"

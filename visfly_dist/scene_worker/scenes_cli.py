@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from visfly_dist.errors import SceneError
+from visfly_dist.output_paths import check_output_dir, check_output_file
 
 KINDS = ("garage-stones", "gap-walls", "landing-pad", "pillars", "empty")
 
@@ -38,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     preview.set_defaults(func=preview_command)
 
 
+PREVIEW_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
 def generate(args: argparse.Namespace) -> int:
     from visfly_dist.scenes.generators import generate_scene, parse_value
     from visfly_dist.scenes.storage import save_scene
@@ -48,6 +52,7 @@ def generate(args: argparse.Namespace) -> int:
         if not sep or not key:
             raise SceneError(f"--param {item!r} must look like key=value, e.g. density=0.2")
         params[key] = parse_value(value)
+    check_output_dir(args.out, "--out")
     scene = generate_scene(args.kind, args.seed, **params)
     out = save_scene(scene, args.out)
     print(f"wrote {scene.name} ({len(scene.objects)} objects, {scene.num_triangles} triangles) to {out}")
@@ -73,6 +78,7 @@ def _preview(args: argparse.Namespace) -> int:
     from visfly_dist.scenes.sources import resolve_source
     from visfly_dist.scenes.storage import load_scene
 
+    check_output_file(args.out, "--out", PREVIEW_SUFFIXES)  # the name printed is the file written
     if args.scene.startswith(GEN_PREFIX):
         scene = resolve_source(args.scene, roots=[])
     else:

@@ -145,9 +145,15 @@ def _check(condition: bool, message: str) -> None:
         raise SceneError(message)
 
 
-def _region(center: tuple[float, ...], half: tuple[float, ...]) -> np.ndarray:
-    _check(all(h >= 0 for h in half), f"region half extents {half} must be >= 0")
-    return np.array([np.subtract(center, half), np.add(center, half)])
+def _region(name: str, center: tuple[float, ...], half: tuple[float, ...]) -> np.ndarray:
+    """``[low, high]`` of the box ``center ± half``, which must lie inside the garage (a start or
+    goal outside it has no floor, no walls in view and no way in)."""
+    _check(all(h >= 0 for h in half), f"{name}_half {half} must be >= 0")
+    low, high = np.subtract(center, half), np.add(center, half)
+    _check(bool(np.all(low >= GARAGE_LOW) and np.all(high <= GARAGE_HIGH)),
+           f"{name}_center {tuple(center)} ± {name}_half {tuple(half)} must lie inside the garage "
+           f"{GARAGE_LOW.tolist()}..{GARAGE_HIGH.tolist()} m")
+    return np.array([low, high])
 
 
 @_register("garage-stones")
@@ -186,7 +192,7 @@ def garage_stones(
     _check(0 < min_radius <= max_radius <= MAX_OBSTACLE_RADIUS,
            f"min_radius={min_radius}, max_radius={max_radius} must satisfy 0 < min <= max <= {MAX_OBSTACLE_RADIUS}")
     _check(margin >= 0, f"margin={margin} must be >= 0")
-    start, goal = _region(start_center, start_half), _region(goal_center, goal_half)
+    start, goal = _region("start", start_center, start_half), _region("goal", goal_center, goal_half)
     count = int(round(float(np.prod(GARAGE_HIGH - GARAGE_LOW)) * density))
     radii = rng.uniform(min_radius, max_radius, size=count)
     keep_clear = [(r[0] - margin, r[1] + margin) for r in (start, goal)]
@@ -339,7 +345,7 @@ def pillars(
     _check(0 <= density <= MAX_PILLAR_DENSITY, f"density={density} must be in [0, {MAX_PILLAR_DENSITY}] pillars per m^2")
     _check(0 < min_radius <= max_radius <= MAX_OBSTACLE_RADIUS,
            f"min_radius={min_radius}, max_radius={max_radius} must satisfy 0 < min <= max <= {MAX_OBSTACLE_RADIUS}")
-    start, goal = _region(start_center, start_half), _region(goal_center, goal_half)
+    start, goal = _region("start", start_center, start_half), _region("goal", goal_center, goal_half)
     area = float(np.prod((GARAGE_HIGH - GARAGE_LOW)[:2]))
     count = int(round(area * density))
     radii = rng.uniform(min_radius, max_radius, size=count)

@@ -37,7 +37,8 @@ SCENE_FILE = "scene.json"
 
 
 def save_scene(scene: Scene, out_dir: PathLike) -> Path:
-    """Write ``scene`` as a visfly scene directory (created if needed; an old scene.json is replaced).
+    """Write ``scene`` as a visfly scene directory (created if needed; an old scene there is replaced,
+    its meshes included).
 
     Returns:
         ``out_dir`` as a Path; ``load_scene`` of it gives the scene back (same names, ids,
@@ -45,11 +46,12 @@ def save_scene(scene: Scene, out_dir: PathLike) -> Path:
     """
     out = Path(out_dir)
     (out / "objects").mkdir(parents=True, exist_ok=True)
-    entries = []
+    entries, written = [], set()
     for obj in scene.objects:
         textured = isinstance(obj.mesh.visual, trimesh.visual.TextureVisuals)
         relative = f"objects/{obj.object_id:04d}_{_safe(obj.name)}.{'glb' if textured else 'ply'}"
         obj.mesh.export(out / relative, file_type="glb" if textured else "ply")
+        written.add(out / relative)
         entry = {"name": obj.name, "id": obj.object_id, "mesh": relative}
         if obj.motion is not None:
             entry["motion"] = obj.motion.to_dict()
@@ -63,6 +65,9 @@ def save_scene(scene: Scene, out_dir: PathLike) -> Path:
         "objects": entries,
     }
     (out / SCENE_FILE).write_text(json.dumps(document, indent=1, default=_json_default))
+    for stale in (out / "objects").iterdir():  # an earlier scene's meshes in this folder: not this scene's
+        if stale.is_file() and stale not in written and stale.suffix in (".ply", ".glb"):
+            stale.unlink()
     return out
 
 

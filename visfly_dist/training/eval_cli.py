@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="deterministic (mean action), sampled (as in training), or both side by side (default)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: the training run's)")
     parser.add_argument("--video", metavar="FILE.gif", help="film agent 0 in the first mode")
-    parser.add_argument("--video-success", action="store_true", help="film agent 0's first successful episode")
+    parser.add_argument("--video-success", action="store_true", help="film agent 0's first successful episode (with none, its first episode, and the summary says so)")
     parser.add_argument("--json", metavar="FILE", help="write the figures, seed, scenes and every episode as JSON")
     parser.add_argument("--seed", type=int, default=12345, help="env seed (default 12345, unlike training's)")
     parser.add_argument("--allow-training-seed", action="store_true", help="evaluate with the training run's own seed")
@@ -67,16 +67,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from visfly_dist.errors import ConfigError
+    from visfly_dist.output_paths import check_output_file
     from visfly_dist.training.evaluation import find_run_config, missing_normalization
     from visfly_dist.training.host_plan import check_device
 
     if args.episodes < 1:
         raise ConfigError(f"--episodes {args.episodes} must be >= 1")
+    if args.num_envs is not None and args.num_envs < 1:
+        raise ConfigError(f"--num-envs {args.num_envs} must be >= 1 (leave it out for the training run's)")
     device = check_device(args.device)
     checkpoint = Path(args.checkpoint)
-    if not checkpoint.is_file():
-        raise ConfigError(f"--checkpoint {str(checkpoint)!r} does not exist; pass a .zip (PPO) or .npz (BPTT/SHAC) "
+    if not checkpoint.is_file() or checkpoint.suffix not in (".zip", ".npz"):
+        raise ConfigError(f"--checkpoint {str(checkpoint)!r} is not a checkpoint; pass a .zip (PPO) or .npz (BPTT/SHAC) "
                           "written by 'visfly-dist train'")
+    if args.video is not None:  # checked before the evaluation that fills them
+        check_output_file(args.video, "--video", (".gif",))
+    if args.json is not None:
+        check_output_file(args.json, "--json")
     differentiable = checkpoint.suffix == ".npz"
     if differentiable and args.mode == "sampled":
         raise ConfigError(f"--mode sampled: {checkpoint} is a BPTT/SHAC actor, which is deterministic; use --mode deterministic")

@@ -309,4 +309,4 @@ def build_eval_env(task: str, num_envs: int | None, seed: int, run_cfg: TrainCon
                    overrides: dict[str, Any], pool: dict[str, Any]) -> VecEnv:
     """``make_env`` with the training run's settings (when known), then the given changes."""
     cfg = eval_config(task, seed, run_cfg, overrides, pool)
-    return VecMonitor(make_env(task, num_envs=num_envs or cfg.num_envs, **env_kwargs(cfg)))
+    return VecMonitor(make_env(task, num_envs=cfg.num_envs if num_envs is None else num_envs, **env_kwargs(cfg)))
