@@ -50,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="deterministic (mean action), sampled (as in training), or both side by side (default)")
     parser.add_argument("--num-envs", type=int, help="parallel agents (default: the training run's)")
     parser.add_argument("--video", metavar="FILE.gif", help="film agent 0 in the first mode")
-    parser.add_argument("--video-success", action="store_true", help="film agent 0's first successful episode (with none, its first episode, and the summary says so)")
+    parser.add_argument("--video-success", action="store_true",
+                        help="film agent 0's first successful episode (with none, its first episode, and the summary says so)")
     parser.add_argument("--json", metavar="FILE", help="write the figures, seed, scenes and every episode as JSON")
     parser.add_argument("--seed", type=int, default=12345, help="env seed (default 12345, unlike training's)")
     parser.add_argument("--allow-training-seed", action="store_true", help="evaluate with the training run's own seed")
