@@ -67,16 +67,26 @@ def test_an_overloaded_worker_gets_no_new_scene_for_a_while_and_the_others_take_
 @contextlib.contextmanager
 def _routed_worker(run_id: str, scene_root, worker_id: str, extra_args: list[str]) -> Iterator[str]:
     """A router and one worker joined to it, started with ``extra_args`` (its limits); yields the endpoint."""
+    with _routed_workers(run_id, {worker_id: scene_root}, extra_args) as endpoint:
+        yield endpoint
+
+
+@contextlib.contextmanager
+def _routed_workers(run_id: str, roots: dict, extra_args: tuple[str, ...] | list[str] = ()) -> Iterator[str]:
+    """A router and a worker per entry of ``roots`` (worker id -> its scene root) joined to it;
+    yields the endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-    worker = None
+    workers = []
     try:
         assert "router ready" in _read_line(router, 30.0)
-        worker = start_worker(run_id, endpoint, scene_root, connect=True, worker_id=worker_id, extra_args=extra_args)
+        for worker_id, root in roots.items():
+            workers.append(start_worker(run_id, endpoint, root, connect=True, worker_id=worker_id,
+                                        extra_args=list(extra_args)))
         yield endpoint
     finally:
-        if worker is not None:
+        for worker in workers:
             stop_process(worker)
         stop_process(router)
 
@@ -158,14 +168,7 @@ def test_a_file_one_worker_lacks_is_placed_on_the_worker_that_has_it(tmp_path, c
     full.mkdir(), partial.mkdir()
     both, only_full = _garage_file(full / "both.ply", False), _garage_file(full / "only_full.ply", False)
     _garage_file(partial / "both.ply", False)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
-                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-    workers = []
-    try:
-        assert "router ready" in _read_line(router, 30.0)
-        workers = [start_worker("lacks", endpoint, full, connect=True, worker_id="wa"),
-                   start_worker("lacks", endpoint, partial, connect=True, worker_id="wb")]
+    with _routed_workers("lacks", {"wa": full, "wb": partial}) as endpoint:
         with caplog.at_level("WARNING", logger="visfly_dist.aggregator.scene_moves"):
             with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "lacks", "min_workers": 2,
                                        "scene_roots": (str(full),)},  # the trainer sees every file
@@ -181,10 +184,6 @@ def test_a_file_one_worker_lacks_is_placed_on_the_worker_that_has_it(tmp_path, c
                 assert sorted(assignment.values()) == ["wa", "wa", "wb", "wb"]
                 assert all(assignment[i] == "wa" for i, source in sources.items() if source == only_full)
         assert "worker wb has no 'only_full.ply' under its scene roots" in caplog.text
-    finally:
-        for proc in workers:
-            stop_process(proc)
-        stop_process(router)
 
 
 def test_a_file_no_worker_has_is_dropped_naming_every_worker(tmp_path):
@@ -193,14 +192,7 @@ def test_a_file_no_worker_has_is_dropped_naming_every_worker(tmp_path):
         root.mkdir()
         good = _garage_file(root / "good.ply", False)
     _garage_file(trainer / "nowhere.ply", False)  # the trainer has it, no worker does
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = subprocess.Popen([sys.executable, "-m", "visfly_dist.cli", "router", "--listen", endpoint], cwd=REPO,
-                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-    workers = []
-    try:
-        assert "router ready" in _read_line(router, 30.0)
-        workers = [start_worker("none", endpoint, root_a, connect=True, worker_id="wa"),
-                   start_worker("none", endpoint, root_b, connect=True, worker_id="wb")]
+    with _routed_workers("none", {"wa": root_a, "wb": root_b}) as endpoint:
         with make_aggregator(pool={"connect": (endpoint,), "num_local_workers": 0, "run_id": "none", "min_workers": 2,
                                    "scene_roots": (str(trainer),)},
                              scenes={"sources": (good, "nowhere.ply"), "num_scenes": 2, "agents_per_scene": 1,
@@ -208,7 +200,3 @@ def test_a_file_no_worker_has_is_dropped_naming_every_worker(tmp_path):
             assert list(agg.dataset.dropped) == ["nowhere.ply"]
             assert "no live worker has it: ['wa', 'wb']" in agg.dataset.dropped["nowhere.ply"]
             assert all(agg.slot_source(i) == good for i in range(agg.num_scenes))
-    finally:
-        for proc in workers:
-            stop_process(proc)
-        stop_process(router)
