@@ -173,11 +173,12 @@ def test_a_pool_hands_its_config_to_its_local_workers(routers, configs):
     ["router", "--listen", "tcp/127.0.0.1:0"],
     ["launch", "--workers", "1", "--run-id", "r", "--connect", "tcp/127.0.0.1:7447"],
     ["train", "hover", "--timesteps", "8"],
-    ["eval", "hover", "--checkpoint", str(REPO / "README.md")],
+    ["eval", "hover", "--checkpoint", "final.zip"],  # made in tmp_path (the cwd) below, never read
     ["bench", "step", "--steps", "1"],
 ])
 def test_every_command_takes_a_zenoh_config_and_names_a_bad_one(tmp_path, command):
     missing = tmp_path / "nowhere.json5"
+    (tmp_path / "final.zip").write_bytes(b"")
     out = subprocess.run([sys.executable, "-m", "visfly_dist.cli", *command, "--zenoh-config", str(missing)],
                          cwd=tmp_path, capture_output=True, text=True, timeout=120,
                          env={**os.environ, "PYTHONPATH": str(REPO)})
