@@ -56,7 +56,7 @@ from visfly_dist.aggregator.scene_moves import LoadJob, PendingSwitch, Reconcile
 from visfly_dist.aggregator.slots import SlotTable
 from visfly_dist.aggregator.spawn_pools import AgentStreams, PoolKey, SpawnJob, SpawnPools, SpawnSpec, spawn_spec
 from visfly_dist.aggregator.step_plan import StepPlans, WorkerEntries, plan_entries
-from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError
+from visfly_dist.errors import AccessDeniedError, ConfigError, ErrorCode, NoWorkersError, RemoteError, VisflyError
 from visfly_dist.protocol.cameras import CameraSpec
 from visfly_dist.protocol.messages import Health, UnloadScene, step_message
 
@@ -198,6 +198,8 @@ class Aggregator:
         try:
             if self._started:
                 self._unload_from_remote_workers()
+        except VisflyError as exc:  # closing goes on: the next run with this run id unloads them
+            log.warning("run %s: unloading the run's scenes from remote workers at close failed: %s", self.run_id, exc)
         finally:
             self._pool.close()
             if self._images is not None:
