@@ -57,15 +57,13 @@ from visfly_dist.protocol import keys
 from visfly_dist.protocol.codec import decode, encode
 from visfly_dist.protocol.local_channel import ChannelClient, socket_pair
 from visfly_dist.protocol.messages import Health
-from visfly_dist.protocol.session import SessionConfig, open_session
+from visfly_dist.protocol.session import SessionConfig, open_session, token_held
 
 log = logging.getLogger(__name__)
 
 STOP_GRACE_S = 5.0
 POLL_S = 0.02
 LIVELINESS_QUEUE = 4096
-TRAINER_CHECK_S = 1.0
-"""How long the liveliness get for another trainer of the run may take at start."""
 EXIT_WAIT_S = 0.5
 """How long a dropped local worker's process is waited for, to tell how it ended (once per drop)."""
 PROBE_TIMEOUT_S = 1.0  # a health reply takes milliseconds; a hung worker costs this much more before it is replaced
@@ -246,20 +244,16 @@ class WorkerPool:
         run id would load their scenes under the same keys on the same workers, each rendering in
         the other's scenes without a word.
 
-        A token still seen is looked at again for one lease (a trainer just killed loses its token
-        within it). Two trainers starting at the same instant can both pass; the check is for the
-        common mistake. Under a router's access control that does not grant the trainer token
-        (``deploy/zenoh/router-acl.json5``: rule ``trainer-token``), nothing is seen: no check.
+        See :func:`~visfly_dist.protocol.session.token_held`. Under a router's access control that
+        does not grant the trainer token (``deploy/zenoh/router-acl.json5``: rule ``trainer-token``),
+        nothing is seen: no check.
         """
         key = keys.trainer_alive(self.run_id)
-        deadline = time.monotonic() + self.config.lease_ms / 1000.0 + 0.5
-        while any(r.ok is not None for r in session.liveliness().get(key, timeout=TRAINER_CHECK_S)):
-            if time.monotonic() >= deadline:
-                raise ConfigError(
-                    f"run id {self.run_id!r} is in use by another trainer (its liveliness token {key} exists): two "
-                    "trainers on one run id would render in each other's scenes. Give this run its own --run-id "
-                    "(and start its workers with it), or stop the other run first")
-            time.sleep(0.2)
+        if token_held(session, key, self.config.lease_ms):
+            raise ConfigError(
+                f"run id {self.run_id!r} is in use by another trainer (its liveliness token {key} exists): two "
+                "trainers on one run id would render in each other's scenes. Give this run its own --run-id "
+                "(and start its workers with it), or stop the other run first")
 
     def close(self) -> None:
         """Stop local workers, undeclare, close the session. Idempotent.

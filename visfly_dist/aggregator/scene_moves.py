@@ -298,12 +298,9 @@ class SceneMoves:
 
     def held(self) -> list[tuple[str, str]]:
         """Every ``(worker, key)`` a worker may hold for this run: served, being loaded or armed for
-        a slot, due to be unloaded, or stale."""
-        out = set()
-        for slot in self._table.slots:
-            moves = (slot.move, None if slot.incoming is None else slot.incoming.move)
-            out |= {(slot.worker, slot.key)} if slot.worker is not None else set()
-            out |= {(m.worker, m.key) for m in moves if m is not None}
+        a slot (an armed swap's move is its slot's move), due to be unloaded, or stale."""
+        out = {(s.worker, s.key) for s in self._table.slots if s.worker is not None}
+        out |= {(s.move.worker, s.move.key) for s in self._table.slots if s.move is not None}
         out |= {(w, k) for _, w, k in self._unloads}
         out |= {(w, k) for w, keys in self.stale.items() for k in keys}
         return sorted(out)
@@ -332,10 +329,7 @@ class SceneMoves:
             if self._reconciled.get(worker) == job.generation:
                 del self._reconciled[worker]
             return []
-        slots = self._table.slots
-        known = {s.key for s in slots if s.worker == worker}
-        known |= {s.move.key for s in slots if s.move is not None and s.move.worker == worker}
-        known |= {k for _, w, k in self._unloads if w == worker} | self.stale.get(worker, set()) | unloading
+        known = {k for w, k in self.held() if w == worker} | unloading
         unknown = sorted((set(reply.message.get("scenes", [])) | set(reply.message.get("loading", []))) - known)
         if not unknown:
             return []

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -168,6 +169,23 @@ def open_session(config: SessionConfig):
         if config.connect:
             raise diagnose_open_failure(where, config.connect, zcfg, exc) from exc
         raise ConfigError(f"{where}: {exc}") from exc
+
+
+TOKEN_CHECK_S = 1.0
+"""How long one liveliness get for a token may take."""
+
+
+def token_held(session, key: str, lease_ms: int) -> bool:
+    """Whether a live session, reachable now, holds the liveliness token ``key``: one seen is looked at
+    again for one lease (``lease_ms``) plus a margin, since a holder just killed or hung loses it
+    within that time and one that is alive does not. Two holders starting at the same instant can
+    both see none; the start-up checks that use this are for the common mistake."""
+    deadline = time.monotonic() + lease_ms / 1000.0 + 0.5
+    while any(r.ok is not None for r in session.liveliness().get(key, timeout=TOKEN_CHECK_S)):
+        if time.monotonic() >= deadline:
+            return True
+        time.sleep(0.2)
+    return False
 
 
 def add_zenoh_config_argument(parser) -> None:

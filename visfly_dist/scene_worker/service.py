@@ -48,7 +48,7 @@ from visfly_dist.protocol.messages import (
     UnloadScene,
     parse_request,
 )
-from visfly_dist.protocol.session import SessionConfig, client_of, open_session
+from visfly_dist.protocol.session import TOKEN_CHECK_S, SessionConfig, client_of, open_session, token_held
 from visfly_dist.scene_worker.image_segments import SegmentMappings
 from visfly_dist.scene_worker.limits import LOAD_RESERVE_BYTES, MIB, WorkerLimits, resident_bytes
 from visfly_dist.scene_worker.loads import LoadJob, Respond, SceneLoader, parallel_loads
@@ -61,8 +61,6 @@ from visfly_dist.scenes import sample_free_positions
 
 log = logging.getLogger(__name__)
 
-DUPLICATE_CHECK_S = 1.0
-"""How long a liveliness get for this worker's own id may take at start."""
 VISIBLE_CHECK_S = 5.0
 """How long a worker with a config file waits to see its own token through the router before it refuses to start."""
 
@@ -183,7 +181,7 @@ class SceneWorker:
         try:
             deadline = time.monotonic() + VISIBLE_CHECK_S
             while time.monotonic() < deadline:
-                if any(r.ok is not None for r in checker.liveliness().get(self.alive_key, timeout=DUPLICATE_CHECK_S)):
+                if any(r.ok is not None for r in checker.liveliness().get(self.alive_key, timeout=TOKEN_CHECK_S)):
                     return
                 time.sleep(0.1)
         finally:
@@ -198,21 +196,14 @@ class SceneWorker:
     def _refuse_duplicate_id(self) -> None:
         """ConfigError if a live worker of this run, reachable now, already holds this worker id.
 
-        A token still seen is looked at again for one lease: a predecessor that was just killed
-        or hung loses its token within that time, a worker that is alive does not. Two workers
-        starting at the same instant can both pass; the check is for the common mistake.
+        See :func:`~visfly_dist.protocol.session.token_held` (a predecessor just killed or hung is
+        waited out for one lease).
         """
-        deadline = time.monotonic() + self.session_config.lease_ms / 1000.0 + 0.5
-        while True:
-            replies = self._session.liveliness().get(self.alive_key, timeout=DUPLICATE_CHECK_S)
-            if not any(r.ok is not None for r in replies):
-                return
-            if time.monotonic() >= deadline:
-                raise ConfigError(
-                    f"worker id {self.worker_id!r} is already alive in run {self.run_id!r} (its liveliness token "
-                    f"{self.alive_key} exists): give each worker a unique --worker-id, or stop the other one first"
-                )
-            time.sleep(0.2)
+        if token_held(self._session, self.alive_key, self.session_config.lease_ms):
+            raise ConfigError(
+                f"worker id {self.worker_id!r} is already alive in run {self.run_id!r} (its liveliness token "
+                f"{self.alive_key} exists): give each worker a unique --worker-id, or stop the other one first"
+            )
 
     def serve(self, should_stop: Callable[[], bool] | None = None, poll_s: float = 0.2) -> None:
         """Answer requests until :meth:`stop` is called or ``should_stop()`` returns True.

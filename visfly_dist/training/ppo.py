@@ -45,7 +45,7 @@ from visfly_dist.client.env_base import DroneEnvBase
 from visfly_dist.errors import ConfigError
 from visfly_dist.host import usable_cores
 from visfly_dist.tasks import make_env
-from visfly_dist.tasks.registry import task_config
+from visfly_dist.tasks.registry import task_class, task_config
 from visfly_dist.training import stop
 from visfly_dist.training.callbacks import StopWhenAsked, SuccessCallback
 from visfly_dist.training.checkpoints import CheckpointEvery, Checkpoints, save_checkpoint, save_on_crash
@@ -62,7 +62,12 @@ from visfly_dist.training.training_video import VideoCallback, video_for
 def build_env(cfg: TrainConfig, worker_logs: Path | None = None) -> VecEnv:
     """``make_env`` wrapped in VecMonitor (episode stats) and, with ``cfg.normalize``, VecNormalize;
     ``worker_logs``: see :func:`~visfly_dist.training.run.env_kwargs`."""
-    env: VecEnv = VecMonitor(make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg, worker_logs)))
+    return wrap_env(cfg, make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg, worker_logs)))
+
+
+def wrap_env(cfg: TrainConfig, task_env: DroneEnvBase) -> VecEnv:
+    """``task_env`` in VecMonitor and, with ``cfg.normalize``, VecNormalize (SB3's loop)."""
+    env: VecEnv = VecMonitor(task_env)
     if cfg.normalize:
         assert isinstance(env.observation_space, spaces.Dict)  # every task's
         keys = vector_keys(env.observation_space)
@@ -145,13 +150,15 @@ def train(cfg: TrainConfig) -> TrainResult:
     assert cfg.out is not None and cfg.timesteps is not None  # resolved() and validate() set them
     run_dir, timesteps = Path(cfg.out), cfg.timesteps
     tensor = cfg.algo == "ppo"
-    task_config(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg))  # a bad task setting fails before anything is said to start
+    logs = run_dir / "workers"  # kept with the run: a worker that failed can be read about afterwards
+    # checked here, so that a bad task setting fails before anything is said to start
+    env_config = task_config(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg, logs))
     if cfg.progress:
         print(f"starting the env: {cfg.num_envs} agents, their scenes loaded by {cfg.workers} local worker(s)"
               if cfg.workers else f"starting the env: {cfg.num_envs} agents, scenes loaded by remote workers", flush=True)
     started = time.monotonic()
-    logs = run_dir / "workers"  # kept with the run: a worker that failed can be read about afterwards
-    env = make_env(cfg.task, num_envs=cfg.num_envs, **env_kwargs(cfg, logs)) if tensor else build_env(cfg, logs)
+    task_env = task_class(cfg.task)(env_config)
+    env = task_env if tensor else wrap_env(cfg, task_env)
     if cfg.progress:
         print(f"env ready in {time.monotonic() - started:.1f} s", flush=True)
     interrupted = False
